@@ -1,0 +1,36 @@
+# Set-up and entry points. Every target builds the virtual environment it needs from the
+# pinned requirements (requirements.txt) only when it is missing or older than that file.
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+export PYTHONPATH := $(CURDIR)$(if $(PYTHONPATH),:$(PYTHONPATH))
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+# the machine-wide pip config points at local mirrors that may not exist: use PyPI only
+export PIP_CONFIG_FILE := /dev/null
+PYTEST_ARGS ?=
+
+.PHONY: venv test demo bench gallery clean
+
+venv: $(STAMP)
+
+$(STAMP): requirements.txt
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade 'pip==26.3'
+	$(PY) -m pip install --quiet -r requirements.txt
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_ARGS) test
+
+demo: $(STAMP)
+	$(PY) -m sphere_servo.tools.demo
+
+bench: $(STAMP)
+	$(PY) -m sphere_servo.tools.bench
+
+gallery: $(STAMP)
+	$(PY) -m sphere_servo.tools.gallery
+
+clean:
+	rm -rf $(VENV) build install log

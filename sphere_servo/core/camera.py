@@ -1,0 +1,139 @@
+"""Pinhole camera model (no ROS).
+
+Pixel ``(u, v)`` ↔ normalized image point ``x̄ = (x, y, 1) = K⁻¹ (u, v, 1)`` (DESIGN.md §1),
+with ``K = [[px, 0, u0], [0, py, v0], [0, 0, 1]]``. Optional plumb_bob distortion
+``(k1, k2, t1, t2, k3)`` as in ``sensor_msgs/CameraInfo``: ``distort`` maps an ideal
+normalized point to the distorted one, ``undistort`` inverts it iteratively.
+
+The controller may be given *wrong* intrinsics while the renderer keeps the true ones
+(the paper's calibration-error experiment): see :meth:`CameraIntrinsics.with_error`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .geometry import GeometryError
+
+Points2 = np.ndarray  # shape (N, 2)
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Intrinsics of a pinhole camera; pixels, with (0, 0) the centre of the top-left pixel."""
+
+    px: float = 600.0
+    py: float = 600.0
+    u0: float = 320.0
+    v0: float = 240.0
+    width: int = 640
+    height: int = 480
+    dist: tuple = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def __post_init__(self):
+        vals = [self.px, self.py, self.u0, self.v0, *self.dist]
+        if not all(np.isfinite(v) for v in vals):
+            raise ValueError(f'camera intrinsics must be finite, got {self}')
+        if self.px <= 0 or self.py <= 0:
+            raise ValueError(f'focal lengths must be > 0, got px={self.px}, py={self.py}')
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f'image size must be > 0, got {self.width}x{self.height}')
+        if len(self.dist) != 5:
+            raise ValueError(f'plumb_bob distortion needs 5 coefficients, got {len(self.dist)}')
+
+    @property
+    def K(self) -> np.ndarray:
+        """3×3 intrinsic matrix."""
+        return np.array([[self.px, 0.0, self.u0], [0.0, self.py, self.v0], [0.0, 0.0, 1.0]])
+
+    @property
+    def K_inv(self) -> np.ndarray:
+        """3×3 inverse intrinsic matrix."""
+        return np.array([[1.0 / self.px, 0.0, -self.u0 / self.px],
+                         [0.0, 1.0 / self.py, -self.v0 / self.py],
+                         [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.dist)
+
+    def with_error(self, px: float = 0.0, py: float = 0.0, u0: float = 0.0,
+                   v0: float = 0.0) -> 'CameraIntrinsics':
+        """Intrinsics off by the given *relative* errors, e.g. ``px=0.35`` for +35 % px."""
+        return replace(self, px=self.px * (1 + px), py=self.py * (1 + py),
+                       u0=self.u0 * (1 + u0), v0=self.v0 * (1 + v0))
+
+    # --- projections --------------------------------------------------------------------
+    def pixel_to_normalized(self, uv: Points2) -> Points2:
+        """(N, 2) pixels → (N, 2) normalized ``(x, y)`` (undistorted if the model has
+        distortion)."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        xy = np.column_stack([(uv[:, 0] - self.u0) / self.px, (uv[:, 1] - self.v0) / self.py])
+        return self.undistort(xy) if self.has_distortion else xy
+
+    def normalized_to_pixel(self, xy: Points2) -> Points2:
+        """(N, 2) normalized ``(x, y)`` → (N, 2) pixels (distorted if the model has it)."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        if self.has_distortion:
+            xy = self.distort(xy)
+        return np.column_stack([self.px * xy[:, 0] + self.u0, self.py * xy[:, 1] + self.v0])
+
+    def project(self, cP: np.ndarray) -> Points2:
+        """(N, 3) points in the camera optical frame → (N, 2) pixels. Points with z ≤ 0 are
+        behind the camera and raise :class:`GeometryError`."""
+        cP = np.asarray(cP, dtype=float).reshape(-1, 3)
+        if np.any(cP[:, 2] <= 1e-12):
+            raise GeometryError('cannot project a point at or behind the camera centre')
+        return self.normalized_to_pixel(cP[:, :2] / cP[:, 2:3])
+
+    def in_image(self, uv: Points2, margin: float = 0.0) -> np.ndarray:
+        """(N,) bool: pixel inside the image, ``margin`` pixels from the border."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        return ((uv[:, 0] >= -0.5 + margin) & (uv[:, 0] <= self.width - 0.5 - margin)
+                & (uv[:, 1] >= -0.5 + margin) & (uv[:, 1] <= self.height - 0.5 - margin))
+
+    def distort(self, xy: Points2) -> Points2:
+        """plumb_bob: ideal normalized → distorted normalized."""
+        k1, k2, t1, t2, k3 = self.dist
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        xd = x * radial + 2 * t1 * x * y + t2 * (r2 + 2 * x * x)
+        yd = y * radial + t1 * (r2 + 2 * y * y) + 2 * t2 * x * y
+        return np.column_stack([xd, yd])
+
+    def undistort(self, xy_d: Points2, iterations: int = 20) -> Points2:
+        """Inverse of :meth:`distort` by fixed-point iteration (as OpenCV does)."""
+        k1, k2, t1, t2, k3 = self.dist
+        x, y = xy_d[:, 0].copy(), xy_d[:, 1].copy()
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+            dx = 2 * t1 * x * y + t2 * (r2 + 2 * x * x)
+            dy = t1 * (r2 + 2 * y * y) + 2 * t2 * x * y
+            x = (xy_d[:, 0] - dx) / radial
+            y = (xy_d[:, 1] - dy) / radial
+        return np.column_stack([x, y])
+
+    # --- sensor_msgs/CameraInfo-shaped dict ---------------------------------------------
+    def to_camera_info_fields(self) -> dict:
+        """Fields of a ``sensor_msgs/CameraInfo`` (row-major k, p, r; plumb_bob d)."""
+        K = self.K
+        P = np.hstack([K, np.zeros((3, 1))])
+        return {'width': int(self.width), 'height': int(self.height),
+                'distortion_model': 'plumb_bob', 'd': [float(d) for d in self.dist],
+                'k': [float(v) for v in K.ravel()], 'r': [float(v) for v in np.eye(3).ravel()],
+                'p': [float(v) for v in P.ravel()]}
+
+    @classmethod
+    def from_camera_info_fields(cls, width, height, k, d=None) -> 'CameraIntrinsics':
+        """Inverse of :meth:`to_camera_info_fields`; raises ``ValueError`` on bad values."""
+        k = np.asarray(k, dtype=float).ravel()
+        if k.size != 9:
+            raise ValueError(f'CameraInfo.k must have 9 entries, got {k.size}')
+        dist = tuple(float(v) for v in (d if d is not None and len(d) else [0.0] * 5))
+        if len(dist) < 5:
+            dist = dist + (0.0,) * (5 - len(dist))
+        return cls(px=k[0], py=k[4], u0=k[2], v0=k[5], width=int(width), height=int(height),
+                   dist=dist[:5])

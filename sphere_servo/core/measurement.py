@@ -1,0 +1,262 @@
+"""From image measurements to the paper's geometric quantities (no ROS). DESIGN.md §2.
+
+Inputs are in *normalized* image coordinates (``x̄ = K⁻¹ (u, v, 1)``); unit vectors
+``q = x̄/‖x̄‖`` are the spherical projections (camera optical frame, z forward).
+
+- :func:`sphere_from_conic`   conic C of the sphere's image → ``b``, ``r_δ``, ``s_n,t = b/r_δ``
+- :func:`conic_from_moments`  blob centroid + covariance → the ellipse's conic
+- :func:`depth_ratio`         ``‖P‖/r`` of a surface mark, eq. (11)–(12), σ = −1
+- :func:`cRo_special`, :func:`cRo_cc`   partial pose ``ᶜR_o``, eqs. (8)–(14) and the CC form
+- :func:`observe`             exact :class:`Observation` of a target from a pose (ground truth)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from .geometry import GeometryError, normalize, require_finite
+from .targets import CC, SPECIAL, Target
+
+Vec3 = np.ndarray
+Mat3 = np.ndarray
+
+
+class MeasurementError(GeometryError):
+    """The measurement does not define the requested quantity."""
+
+
+@dataclass(frozen=True)
+class SphereMeasurement:
+    """The sphere's spherical-projection quantities.
+
+    b          (3,) unit vector towards the centre O (dome-hat summit), camera frame.
+    r_delta    ``r_δ = r/‖O‖ = sin θ`` ∈ (0, 1).
+    quality    relative spread of the two "equal" eigenvalues of the conic (0 for an exact
+               sphere image; grows with fitting error or a non-spherical body).
+    """
+
+    b: Vec3
+    r_delta: float
+    quality: float = 0.0
+
+    @property
+    def s_nt(self) -> Vec3:
+        """``s_n,t = b / r_δ = O / r`` (eq. 5)."""
+        return self.b / self.r_delta
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Everything the features need from one image.
+
+    sphere   the sphere measurement.
+    q        unit vectors of the marks (camera frame), by name ('P1', 'P2' or 'P3').
+    kind     'special' or 'cc': how to interpret the second mark.
+    """
+
+    sphere: SphereMeasurement
+    q: dict = field(default_factory=dict)
+    kind: str = SPECIAL
+
+    @property
+    def second(self) -> str:
+        return 'P2' if self.kind == SPECIAL else 'P3'
+
+
+# --- sphere ------------------------------------------------------------------------------
+def sphere_from_conic(C: np.ndarray) -> SphereMeasurement:
+    """Sphere quantities from the conic ``x̄ᵀ C x̄ = 0`` of its image (normalized coords).
+
+    ``C ∝ b bᵀ − cos²θ I₃`` for any scale and sign (DESIGN.md §2): flip the sign so exactly
+    one eigenvalue is positive; ``b`` = its eigenvector (``b_z > 0``),
+    ``cos²θ = −λ₂/(λ₁ − λ₂)`` with λ₂ the mean of the two negative ones.
+    Raises :class:`MeasurementError` for a conic that is not the image of a sphere in front of
+    the camera (degenerate, not an ellipse, NaN).
+    """
+    C = require_finite(C, 'conic')
+    if C.shape != (3, 3):
+        raise MeasurementError(f'conic must be 3×3, got shape {C.shape}')
+    C = 0.5 * (C + C.T)
+    scale = np.max(np.abs(C))
+    if scale == 0:
+        raise MeasurementError('degenerate conic: all zeros')
+    w, V = np.linalg.eigh(C / scale)
+    pos = w > 1e-12 * np.max(np.abs(w))
+    if np.count_nonzero(pos) == 2:
+        w, V, pos = -w[::-1], V[:, ::-1], ~pos[::-1]
+        pos = w > 1e-12 * np.max(np.abs(w))
+    if np.count_nonzero(pos) != 1 or np.count_nonzero(w < 0) != 2:
+        raise MeasurementError(f'conic is not the image of a sphere (eigenvalues {w})')
+    i1 = int(np.argmax(w))
+    lam1 = w[i1]
+    others = np.delete(w, i1)
+    lam2 = float(np.mean(others))
+    b = V[:, i1]
+    if b[2] < 0:
+        b = -b
+    if b[2] <= 1e-12:
+        raise MeasurementError('sphere centre is not in front of the camera')
+    cos2 = -lam2 / (lam1 - lam2)
+    r_delta = float(np.sqrt(max(0.0, 1.0 - cos2)))
+    if not 0.0 < r_delta < 1.0:
+        raise MeasurementError(f'sphere image gives r_δ = {r_delta}, outside (0, 1)')
+    quality = float(abs(others[0] - others[1]) / abs(lam2))
+    return SphereMeasurement(b=b, r_delta=r_delta, quality=quality)
+
+
+def conic_from_ellipse(center: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Conic of the ellipse ``(p − c)ᵀ A (p − c) = 1`` (A: 2×2 symmetric positive)."""
+    c = np.asarray(center, dtype=float)
+    Ac = A @ c
+    C = np.empty((3, 3))
+    C[:2, :2] = A
+    C[:2, 2] = C[2, :2] = -Ac
+    C[2, 2] = c @ Ac - 1.0
+    return C
+
+
+def conic_from_moments(centroid: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Conic of a filled ellipse from its region centroid (2,) and covariance (2×2), both in
+    normalized coordinates: the boundary is ``(p − c)ᵀ (4Σ)⁻¹ (p − c) = 1``."""
+    centroid = require_finite(centroid, 'blob centroid')
+    cov = require_finite(cov, 'blob covariance')
+    if np.linalg.det(cov) <= 0:
+        raise MeasurementError('blob covariance is not positive definite')
+    return conic_from_ellipse(centroid, np.linalg.inv(4.0 * cov))
+
+
+def sphere_from_moments(centroid: np.ndarray, cov: np.ndarray) -> SphereMeasurement:
+    """:func:`sphere_from_conic` of :func:`conic_from_moments`."""
+    return sphere_from_conic(conic_from_moments(centroid, cov))
+
+
+def conic_pixels_to_normalized(C_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """A conic in pixel coordinates → the same conic in normalized coordinates (``KᵀCK``)."""
+    return K.T @ C_px @ K
+
+
+# --- marks ------------------------------------------------------------------------------
+def unit_ray(xy: np.ndarray) -> Vec3:
+    """Normalized image point (x, y) → unit vector ``q = x̄/‖x̄‖``. Raises on NaN/inf (a
+    point at infinity)."""
+    xy = require_finite(xy, 'image point')
+    return normalize(np.array([xy[0], xy[1], 1.0]), 'image point')
+
+
+def depth_ratio(sphere: SphereMeasurement, q: Vec3) -> float:
+    """``‖P‖/r`` of a surface point seen along ``q`` (eq. 11–12, σ = −1, the visible side):
+    ``(cos φ − √(r_δ² − sin² φ)) / r_δ`` with ``cos φ = bᵀq``. The root's argument is clamped
+    at 0 (a mark measured just outside the silhouette, e.g. by noise)."""
+    cphi = float(sphere.b @ q)
+    if cphi <= 0:
+        raise MeasurementError('mark direction points away from the sphere')
+    sin2 = max(0.0, 1.0 - cphi * cphi)
+    return (cphi - np.sqrt(max(0.0, sphere.r_delta ** 2 - sin2))) / sphere.r_delta
+
+
+def P_over_r(sphere: SphereMeasurement, q: Vec3) -> Vec3:
+    """``P/r = (‖P‖/r) q`` for a surface mark."""
+    return depth_ratio(sphere, q) * q
+
+
+def P3_over_r(sphere: SphereMeasurement, P1r: Vec3, q3: Vec3) -> Vec3:
+    """CC tip: P3 lies on the tangent plane at P1, so with ``d = s_n,t − P1/r``,
+    ``‖P3‖/r = (P1/r · d)/(q3 · d)`` (DESIGN.md §2)."""
+    d = sphere.s_nt - P1r
+    den = float(q3 @ d)
+    if abs(den) < 1e-12:
+        raise MeasurementError('tangent tip ray is parallel to the tangent plane')
+    rho = float(P1r @ d) / den
+    if rho <= 0:
+        raise MeasurementError('tangent tip would lie behind the camera')
+    return rho * q3
+
+
+def _rot_from_r3_r2(r3: Vec3, a: Vec3) -> Mat3:
+    r3 = normalize(r3, 'r3')
+    r2 = normalize(a - (a @ r3) * r3, 'r2 (marks aligned with the centre)')
+    r1 = np.cross(r2, r3)
+    return np.column_stack([r1, r2, r3])
+
+
+def cRo_special(sphere: SphereMeasurement, q1: Vec3, q2: Vec3) -> Mat3:
+    """Partial pose of the special sphere, eqs. (8)–(14): ``r3 = n(s_n,t − P1/r)``,
+    ``a = P2/r − P1/r``, ``r2 = n(a − (aᵀr3) r3)``, ``r1 = r2 × r3``, ``ᶜR_o = [r1 r2 r3]``.
+
+    This *measured* frame is the rotation of a frame attached to the target (not the
+    target's model frame); ``ᶜ*R_c = ᶜ*R_o ᶜR_oᵀ`` is independent of that choice."""
+    P1r = P_over_r(sphere, q1)
+    return _rot_from_r3_r2(sphere.s_nt - P1r, P_over_r(sphere, q2) - P1r)
+
+
+def cRo_cc(sphere: SphereMeasurement, q1: Vec3, q3: Vec3) -> Mat3:
+    """Partial pose of the CC target: ``r3 = n(s_n,t − P1/r)``, ``r2 = n(P3/r − P1/r)``
+    (orthogonalised against r3), ``r1 = r2 × r3``."""
+    P1r = P_over_r(sphere, q1)
+    return _rot_from_r3_r2(sphere.s_nt - P1r, P3_over_r(sphere, P1r, q3) - P1r)
+
+
+def cRo_measured(obs: Observation) -> Mat3:
+    """:func:`cRo_special` or :func:`cRo_cc` according to ``obs.kind``."""
+    try:
+        q1, q2 = obs.q['P1'], obs.q[obs.second]
+    except KeyError as exc:
+        raise MeasurementError(f'mark {exc.args[0]} is not visible') from None
+    if obs.kind == CC:
+        return cRo_cc(obs.sphere, q1, q2)
+    return cRo_special(obs.sphere, q1, q2)
+
+
+def model_cRo_offset(target: Target) -> Mat3:
+    """``ᵒR_m``: the rotation of the measured frame (built as in :func:`cRo_special` /
+    :func:`cRo_cc` from the model marks) in the target's model frame, so that the measured
+    ``ᶜR_o`` equals ``ᶜR_o(model) · ᵒR_m``."""
+    r3 = -target.oP1 / np.linalg.norm(target.oP1)
+    return _rot_from_r3_r2(r3, target.oP2 - target.oP1)
+
+
+# --- ground truth ------------------------------------------------------------------------
+def mark_visible(cMo: pin.SE3, target: Target, name: str) -> bool:
+    """Whether mark ``name`` faces the camera (surface mark) or is not hidden by the sphere
+    (CC tip), ignoring the image borders."""
+    oP = target.marks()[name]
+    cP = cMo.act(oP)
+    if cP[2] <= 0:
+        return False
+    if target.kind == CC and name == 'P3':
+        # occluded if the segment camera→P3 enters the body first
+        cO = cMo.translation
+        d = cP / np.linalg.norm(cP)
+        bq = d @ cO
+        disc = bq * bq - (cO @ cO - target.radius ** 2)
+        if disc <= 0:
+            return True
+        t_near = bq - np.sqrt(disc)
+        return not (0 < t_near < np.linalg.norm(cP))
+    n_c = cMo.rotation @ target.surface_normal(oP)
+    return float(n_c @ cP) < 0
+
+
+def observe(cMo: pin.SE3, target: Target, require_visible: bool = True) -> Observation:
+    """Exact observation of a *spherical* target seen from pose ``cMo`` (target in camera).
+
+    Raises :class:`MeasurementError` if the sphere is not entirely in front of the camera or
+    (with ``require_visible``) a mark is hidden."""
+    if not target.is_sphere:
+        raise MeasurementError('exact observation is defined for spherical targets only')
+    cO = np.asarray(cMo.translation, dtype=float)
+    dist = float(np.linalg.norm(cO))
+    if dist <= target.radius * (1 + 1e-9):
+        raise MeasurementError('camera is inside the sphere')
+    b = cO / dist
+    r_delta = target.radius / dist
+    if b[2] <= r_delta:  # cone of the silhouette must be in front of the camera
+        raise MeasurementError('sphere is not entirely in front of the camera')
+    q = {}
+    for name, oP in target.marks().items():
+        if require_visible and not mark_visible(cMo, target, name):
+            raise MeasurementError(f'mark {name} is hidden')
+        q[name] = normalize(cMo.act(oP))
+    return Observation(SphereMeasurement(b, r_delta), q, target.kind)
