@@ -1,0 +1,159 @@
+"""Shared pytest fixtures: an isolated ROS 2 domain per test, a colcon-built install space,
+and a launcher for the installed executables (launch_testing style, without launch_testing,
+which is not on PyPI).
+
+- ``ros_env``       environment for processes of one test: its own ``ROS_DOMAIN_ID``,
+                    localhost discovery, and the install space sourced.
+- ``install_space`` ``colcon build`` of this package into a temporary install base, once per
+                    session; executables are resolved as ``ros2 run`` does:
+                    ``get_package_prefix('sphere_servo')/lib/sphere_servo/<name>``.
+- ``launch``        start an installed executable as a process; all are stopped (SIGINT,
+                    then SIGKILL) at the end of the test; logs go to the test's tmp dir.
+"""
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+_domain_counter = itertools.count()
+
+
+def _next_domain_id() -> int:
+    # ROS_DOMAIN_ID must be ≤ 101 for the default port mapping on Linux; spread parallel
+    # pytest runs by pid so they do not hear each other.
+    return 1 + (os.getpid() * 7 + next(_domain_counter)) % 100
+
+
+@pytest.fixture(scope='session')
+def install_space(tmp_path_factory) -> dict:
+    """Build the package with colcon into a temporary install base and return the
+    environment of ``source install/setup.bash``."""
+    base = tmp_path_factory.mktemp('colcon')
+    venv_bin = Path(sys.executable).parent
+    colcon = venv_bin / 'colcon'
+    cmd = [str(colcon), '--log-base', str(base / 'log'), 'build', '--base-paths', str(REPO),
+           '--build-base', str(base / 'build'), '--install-base', str(base / 'install')]
+    env = dict(os.environ, PATH=f'{venv_bin}:{os.environ.get("PATH", "")}')
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    if out.returncode != 0:
+        pytest.fail(f'colcon build failed:\n{out.stdout}\n{out.stderr}')
+    dump = subprocess.run(
+        ['bash', '-c', f'source "{base}/install/setup.bash" && env -0'], env=env,
+        capture_output=True, timeout=60, check=True).stdout.decode()
+    sourced = dict(kv.split('=', 1) for kv in dump.split('\0') if '=' in kv)
+    # the repository checkout must not shadow the installed package
+    sourced['PYTHONPATH'] = ':'.join(
+        p for p in sourced.get('PYTHONPATH', '').split(':') if p and Path(p) != REPO)
+    sourced['SPHERE_SERVO_INSTALL'] = str(base / 'install')
+    return sourced
+
+
+def executable_path(env: dict, name: str) -> str:
+    """Resolve ``name`` exactly as ``ros2 run sphere_servo <name>`` does."""
+    code = ('from ament_index_python.packages import get_package_prefix as g;'
+            'print(g("sphere_servo"))')
+    prefix = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                            text=True, check=True).stdout.strip()
+    path = Path(prefix) / 'lib' / 'sphere_servo' / name
+    if not path.is_file() or not os.access(path, os.X_OK):
+        raise FileNotFoundError(f'no executable {name!r} in {path.parent}')
+    return str(path)
+
+
+@pytest.fixture
+def ros_env(install_space) -> dict:
+    """Environment for this test's processes: own domain, localhost discovery."""
+    env = dict(install_space)
+    env['ROS_DOMAIN_ID'] = str(_next_domain_id())
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['PYTHONUNBUFFERED'] = '1'
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    return env
+
+
+class Proc:
+    """A started executable; ``log()`` returns what it printed so far."""
+
+    def __init__(self, name: str, popen: subprocess.Popen, log_path: Path):
+        self.name, self.popen, self.log_path = name, popen, log_path
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors='replace')
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """SIGINT (as Ctrl-C), wait, then SIGKILL; returns the exit code."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGINT)
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait(5)
+        return self.popen.returncode
+
+
+@pytest.fixture
+def launch(ros_env, tmp_path):
+    """``launch(name, *args, env_extra=None)`` starts an installed executable."""
+    procs: list[Proc] = []
+
+    def _launch(name: str, *args: str, env_extra: dict | None = None) -> Proc:
+        env = dict(ros_env, **(env_extra or {}))
+        log_path = tmp_path / f'{name}-{len(procs)}.log'
+        fh = open(log_path, 'w')
+        popen = subprocess.Popen([executable_path(env, name), *args], env=env,
+                                 stdout=fh, stderr=subprocess.STDOUT)
+        proc = Proc(name, popen, log_path)
+        procs.append(proc)
+        return proc
+
+    yield _launch
+    for p in procs:
+        p.stop()
+
+
+def wait_for(predicate, timeout: float, interval: float = 0.05, what: str = 'condition'):
+    """Poll ``predicate`` until it is truthy; fail the test after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    pytest.fail(f'timed out after {timeout} s waiting for {what}')
+
+
+@pytest.fixture
+def test_node(ros_env):
+    """An rclpy node in this test process, on the test's domain, with its own context and
+    executor: ``node, spin = test_node``; ``spin(seconds)`` processes callbacks."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.executors import SingleThreadedExecutor
+
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    node = rclpy.create_node(f'test_node_{os.getpid()}', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+
+    def spin(seconds: float = 0.1, until=None):
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+            if until is not None and until():
+                return True
+        return until() if until is not None else None
+
+    yield node, spin
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
