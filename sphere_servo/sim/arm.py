@@ -1,0 +1,383 @@
+"""The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
+
+- Robot: the UR5 URDF of ``example-robot-data``, loaded with Pinocchio (:func:`find_ur5_urdf`
+  says where it is looked for).
+- Camera: the optical frame ``c`` (REP 103: z forward, x right, y down) is fixed on ``tool0``
+  by the hand-eye transform ``tool0Mc``. ``tool0``'s z axis is the flange's outward axis (the
+  direction from the wrist_3 joint to the flange), so the default ``tool0Mc = I`` looks out
+  of the flange.
+- Command: a camera twist ``v_c = (v, ω)`` expressed in the *current camera frame*
+  (DESIGN.md §1). It is mapped to joint velocities by damped least squares on the camera
+  Jacobian ``J_c`` (``pin.LOCAL`` on the added camera frame, 6×nv), with damping that grows
+  as the smallest singular value ``σ_min`` of ``J_c`` falls below ``singular_threshold``.
+  Then, in this order:
+
+  1. joint position limits: a joint at a limit that the solution would drive further is
+     locked and the least-squares problem is solved again without it (it may still move
+     away from the limit); status ``joint_limit`` (details: the joint names);
+  2. singularity: when ``σ_min < singular_threshold`` and the motion decreases ``σ_min``,
+     the whole vector is slowed linearly down to 0 at ``singular_stop`` (MoveIt Servo's
+     approach, with ``σ_min`` in place of the condition number); status ``singularity``;
+  3. joint velocity limits (URDF × ``velocity_scale``): the whole vector is scaled by one
+     factor, never clipped per axis, so the camera keeps the commanded direction;
+  4. a joint that would cross its limit within this step is landed exactly on it, again
+     by scaling the whole vector.
+
+- Integration: ``q ← pin.integrate(model, q, q̇ dt)`` with a fixed ``dt``.
+- Watchdog: if no command arrived for more than ``cmd_timeout`` seconds of simulated time,
+  ``q̇ = 0`` and status ``timeout``.
+- Ground truth: ``wMc`` (camera in the world), ``cMo`` (target in the camera) with the
+  target placed at ``wMo`` in the world.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import sys
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+URDF_ENV = 'SPHERE_SERVO_UR5_URDF'
+URDF_REL = 'example-robot-data/robots/ur_description/urdf/ur5_robot.urdf'
+CAMERA_FRAME = 'camera_optical_frame'
+
+
+class Status(str, Enum):
+    """Status of the last simulation step (the string value is what the node publishes)."""
+
+    OK = 'ok'
+    JOINT_LIMIT = 'joint_limit'
+    SINGULARITY = 'singularity'
+    TIMEOUT = 'timeout'
+
+
+@dataclass
+class StepInfo:
+    """What the last mapping/step did.
+
+    status   the most important condition (timeout > joint_limit > singularity > ok).
+    joints   names of the joints locked at a position limit (for ``joint_limit``).
+    qdot     the joint velocities applied (nv,).
+    scale    the uniform factor applied to q̇ (velocity limits, singularity, limit landing).
+    sigma_min  smallest singular value of the camera Jacobian at the start of the step.
+    flags    every condition met (a set of :class:`Status`).
+    """
+
+    status: Status = Status.OK
+    joints: list = field(default_factory=list)
+    qdot: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    scale: float = 1.0
+    sigma_min: float = float('nan')
+    flags: set = field(default_factory=set)
+
+    @property
+    def message(self) -> str:
+        """Human-readable details, e.g. ``'wrist_3_joint at limit'``."""
+        if self.status == Status.JOINT_LIMIT:
+            return ', '.join(self.joints) + ' at position limit'
+        if self.status == Status.SINGULARITY:
+            return f'near singularity: sigma_min={self.sigma_min:.4f}, scale={self.scale:.3f}'
+        if self.status == Status.TIMEOUT:
+            return 'no command within cmd_timeout: holding still'
+        return ''
+
+
+def find_ur5_urdf(override: str | os.PathLike | None = None) -> str:
+    """Path of ``ur5_robot.urdf``. Looked for, in this order: ``override``; the environment
+    variable ``SPHERE_SERVO_UR5_URDF``; ``cmeel.prefix/share/…`` under ``sys.prefix`` and
+    every ``site-packages`` on ``sys.path`` (the PyPI ``example-robot-data`` wheel); the
+    ``example-robot-data`` share directory of an ament (full ROS) install.
+    Raises ``FileNotFoundError`` listing the places searched."""
+    tried = []
+    for cand in (override, os.environ.get(URDF_ENV)):
+        if cand:
+            if Path(cand).is_file():
+                return str(cand)
+            tried.append(str(cand))
+            if cand is override:
+                raise FileNotFoundError(f'UR5 URDF not found at the given path {cand!r}')
+    roots = [sys.prefix, *[p for p in sys.path if p.endswith('-packages')]]
+    for root in roots:
+        for pattern in (f'{root}/cmeel.prefix/share/{URDF_REL}',
+                        f'{root}/lib*/python*/site-packages/cmeel.prefix/share/{URDF_REL}'):
+            hits = sorted(glob.glob(pattern))
+            if hits:
+                return hits[0]
+            tried.append(pattern)
+    try:  # a full ROS install (ros-jazzy-example-robot-data)
+        from ament_index_python.packages import get_package_share_directory
+        share = Path(get_package_share_directory('example-robot-data'))
+        cand = share / 'robots/ur_description/urdf/ur5_robot.urdf'
+        if cand.is_file():
+            return str(cand)
+        tried.append(str(cand))
+    except Exception:  # noqa: BLE001 - ament index absent or package unknown
+        tried.append('ament index: example-robot-data')
+    raise FileNotFoundError(
+        'UR5 URDF (example-robot-data) not found; install it with '
+        "`pip install example-robot-data` or set SPHERE_SERVO_UR5_URDF. Searched: "
+        + '; '.join(tried))
+
+
+def pose_from_xyz_rpy(xyz, rpy) -> pin.SE3:
+    """SE3 from a translation and roll-pitch-yaw (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
+    return pin.SE3(pin.rpy.rpyToMatrix(*np.asarray(rpy, dtype=float)),
+                   np.asarray(xyz, dtype=float))
+
+
+def pose_to_xyz_rpy(M: pin.SE3) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`pose_from_xyz_rpy`."""
+    return np.array(M.translation), np.asarray(pin.rpy.matrixToRpy(M.rotation))
+
+
+class ArmModel:
+    """UR5 + eye-in-hand camera kinematics, DLS command mapping, limits and a watchdog.
+
+    Parameters
+    ----------
+    urdf_path      see :func:`find_ur5_urdf`.
+    tool0Mc        hand-eye transform (pose of the camera optical frame in ``tool0``).
+    wMo            pose of the target frame in the world (the robot base frame ``world``).
+    q0             start joint configuration (nq,); the neutral one by default.
+    damping        maximum DLS damping λ_max (rad/s per m/s); applied fully at σ_min = 0.
+    singular_threshold   σ_min under which damping and slow-down start.
+    singular_stop  σ_min at which motion towards the singularity stops.
+    velocity_scale fraction of the URDF joint velocity limits used (0, 1].
+    cmd_timeout    watchdog timeout, seconds of simulated time.
+    limit_margin   distance (rad) to a position limit within which a joint counts as at it.
+    """
+
+    def __init__(self, urdf_path=None, tool0Mc: pin.SE3 | None = None,
+                 wMo: pin.SE3 | None = None, q0=None, damping: float = 0.05,
+                 singular_threshold: float = 0.04, singular_stop: float = 0.01,
+                 velocity_scale: float = 1.0, cmd_timeout: float = 0.5,
+                 limit_margin: float = 1e-6, ee_frame: str = 'tool0'):
+        for name, val, lo in (('damping', damping, 0.0), ('cmd_timeout', cmd_timeout, 0.0),
+                              ('singular_stop', singular_stop, 0.0)):
+            if not np.isfinite(val) or val < lo:
+                raise ValueError(f'{name} must be a finite number >= {lo}, got {val}')
+        if not (np.isfinite(velocity_scale) and 0 < velocity_scale <= 1):
+            raise ValueError(f'velocity_scale must be in (0, 1], got {velocity_scale}')
+        if not (np.isfinite(singular_threshold) and singular_threshold > singular_stop):
+            raise ValueError('singular_threshold must be finite and > singular_stop, got '
+                             f'{singular_threshold} <= {singular_stop}')
+        self.urdf_path = find_ur5_urdf(urdf_path)
+        self.model = pin.buildModelFromUrdf(self.urdf_path)
+        if not self.model.existFrame(ee_frame):
+            raise ValueError(f'frame {ee_frame!r} not in the URDF')
+        self.ee_frame = ee_frame
+        self.tool0Mc = pin.SE3.Identity() if tool0Mc is None else pin.SE3(tool0Mc)
+        ee_id = self.model.getFrameId(ee_frame)
+        ee = self.model.frames[ee_id]
+        self.cam_id = self.model.addFrame(pin.Frame(
+            CAMERA_FRAME, ee.parentJoint, ee_id, ee.placement * self.tool0Mc,
+            pin.FrameType.OP_FRAME))
+        self.data = self.model.createData()
+        self.joint_names = list(self.model.names)[1:]
+        self.lower = np.array(self.model.lowerPositionLimit)
+        self.upper = np.array(self.model.upperPositionLimit)
+        self.vmax = np.array(self.model.velocityLimit) * velocity_scale
+        self.damping = float(damping)
+        self.singular_threshold = float(singular_threshold)
+        self.singular_stop = float(singular_stop)
+        self.cmd_timeout = float(cmd_timeout)
+        self.limit_margin = float(limit_margin)
+        self.wMo = pin.SE3.Identity() if wMo is None else pin.SE3(wMo)
+        self.q_start = self._check_q(pin.neutral(self.model) if q0 is None else q0, 'q0')
+        self.named: dict[str, np.ndarray] = {'start': self.q_start.copy()}
+        self.reset()
+
+    # --- state ----------------------------------------------------------------------
+    def _check_q(self, q, what='q') -> np.ndarray:
+        q = np.asarray(q, dtype=float).ravel()
+        if q.shape != (self.model.nq,):
+            raise ValueError(f'{what} must have {self.model.nq} joint values '
+                             f'({", ".join(self.joint_names)}), got {q.size}')
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f'{what} contains NaN or inf: {q}')
+        bad = [n for n, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper)
+               if not lo <= v <= hi]
+        if bad:
+            raise ValueError(f'{what} is outside the joint position limits for {bad}')
+        return q.copy()
+
+    def reset(self, q=None) -> None:
+        """Back to the start configuration (or ``q``), at rest, time 0, no command."""
+        self.q = self._check_q(self.q_start if q is None else q)
+        self.qdot = np.zeros(self.model.nv)
+        self.t = 0.0
+        self._cmd = np.zeros(6)
+        self._cmd_time: float | None = None
+        self.info = StepInfo(qdot=self.qdot.copy())
+
+    def set_q(self, q) -> None:
+        """Jump to a joint configuration (at rest; keeps time and watchdog state)."""
+        self.q = self._check_q(q)
+        self.qdot = np.zeros(self.model.nv)
+
+    # --- kinematics -----------------------------------------------------------------
+    def wMc(self, q=None) -> pin.SE3:
+        """Pose of the camera optical frame in the world."""
+        q = self.q if q is None else q
+        pin.framesForwardKinematics(self.model, self.data, q)
+        return pin.SE3(self.data.oMf[self.cam_id])
+
+    def cMo(self, q=None) -> pin.SE3:
+        """Pose of the target in the camera frame (ground truth)."""
+        return self.wMc(q).inverse() * self.wMo
+
+    def oMc(self, q=None) -> pin.SE3:
+        """Pose of the camera in the target frame (ground truth)."""
+        return self.wMo.inverse() * self.wMc(q)
+
+    def camera_jacobian(self, q=None) -> np.ndarray:
+        """6×nv ``J_c``: ``v_c = J_c q̇`` with ``v_c = (v, ω)`` in the camera frame."""
+        q = self.q if q is None else q
+        return np.array(pin.computeFrameJacobian(self.model, self.data, q, self.cam_id,
+                                                 pin.LOCAL))
+
+    def sigma_min(self, q=None) -> float:
+        return float(np.linalg.svd(self.camera_jacobian(q), compute_uv=False)[-1])
+
+    def _dls(self, J: np.ndarray, v: np.ndarray, sigma_min: float) -> np.ndarray:
+        """Damped least squares ``Jᵀ(JJᵀ + λ²I)⁻¹ v`` with λ² = λ_max²(1 − (σ/σ₀)²) below
+        σ₀ = singular_threshold, 0 above (Nakamura–Chiaverini)."""
+        lam2 = 0.0
+        if sigma_min < self.singular_threshold:
+            lam2 = self.damping ** 2 * (1.0 - (sigma_min / self.singular_threshold) ** 2)
+        A = J @ J.T + (lam2 + 1e-12) * np.eye(J.shape[0])
+        return J.T @ np.linalg.solve(A, v)
+
+    # --- command mapping ----------------------------------------------------------------
+    def twist_to_qdot(self, v_c, dt: float | None = None) -> StepInfo:
+        """Joint velocities realising camera twist ``v_c`` at the current configuration, with
+        limits applied (see the module docstring). ``dt`` (if given) lands joints exactly
+        on limits they would cross within the step. Raises ``ValueError`` on a non-finite
+        or wrongly-sized twist."""
+        v_c = np.asarray(v_c, dtype=float).ravel()
+        if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
+            raise ValueError(f'camera twist must be 6 finite numbers, got {v_c}')
+        info = StepInfo()
+        J = self.camera_jacobian()
+        info.sigma_min = float(np.linalg.svd(J, compute_uv=False)[-1])
+        if not np.any(v_c):
+            info.qdot = np.zeros(self.model.nv)
+            return info
+        # 1. position limits: lock joints pushed further into a limit, solve again
+        locked = np.zeros(self.model.nv, dtype=bool)
+        at_hi = self.q >= self.upper - self.limit_margin
+        at_lo = self.q <= self.lower + self.limit_margin
+        for _ in range(self.model.nv):
+            Jl = J.copy()
+            Jl[:, locked] = 0.0
+            qdot = self._dls(Jl, v_c, info.sigma_min)
+            qdot[locked] = 0.0
+            push = ((at_hi & (qdot > 0)) | (at_lo & (qdot < 0))) & ~locked
+            if not push.any():
+                break
+            locked |= push
+        if locked.any():
+            info.flags.add(Status.JOINT_LIMIT)
+            info.joints = [n for n, lk in zip(self.joint_names, locked) if lk]
+        # 2. singularity: slow motion that decreases σ_min
+        scale = 1.0
+        if info.sigma_min < self.singular_threshold:
+            eps = 1e-4 / max(np.linalg.norm(qdot), 1e-9)
+            s_next = self.sigma_min(pin.integrate(self.model, self.q, qdot * eps))
+            if s_next < info.sigma_min:
+                ramp = ((info.sigma_min - self.singular_stop)
+                        / (self.singular_threshold - self.singular_stop))
+                scale = float(np.clip(ramp, 0.0, 1.0))
+                info.flags.add(Status.SINGULARITY)
+        qdot = qdot * scale
+        # 3. velocity limits: one factor for the whole vector
+        over = np.max(np.abs(qdot) / self.vmax)
+        if over > 1.0:
+            qdot /= over
+            scale /= over
+        # 4. do not cross a position limit within this step: land on it
+        if dt is not None and dt > 0:
+            q_next = self.q + qdot * dt
+            room = np.where(qdot > 0, self.upper - self.q, self.lower - self.q)
+            cross = ((q_next > self.upper) | (q_next < self.lower)) & (qdot != 0)
+            if cross.any():
+                f = float(np.min(np.clip(room[cross] / (qdot[cross] * dt), 0.0, 1.0)))
+                qdot *= f
+                scale *= f
+                info.flags.add(Status.JOINT_LIMIT)
+                info.joints = sorted(set(info.joints) | {
+                    n for n, c in zip(self.joint_names, cross) if c},
+                    key=self.joint_names.index)
+        info.qdot, info.scale = qdot, scale
+        info.status = (Status.JOINT_LIMIT if Status.JOINT_LIMIT in info.flags else
+                       Status.SINGULARITY if Status.SINGULARITY in info.flags else Status.OK)
+        return info
+
+    def command(self, v_c) -> None:
+        """Set the camera twist to execute from now on (stamped with the sim time).
+        Raises ``ValueError`` on NaN/inf or a wrong size, leaving the previous command."""
+        v_c = np.asarray(v_c, dtype=float).ravel()
+        if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
+            raise ValueError(f'camera twist must be 6 finite numbers, got {v_c}')
+        self._cmd = v_c.copy()
+        self._cmd_time = self.t
+
+    def stop(self) -> None:
+        """Drop the current command (the arm halts at the next step)."""
+        self._cmd = np.zeros(6)
+
+    def step(self, dt: float) -> StepInfo:
+        """Advance the simulation by ``dt`` seconds under the current command."""
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f'dt must be a finite number > 0, got {dt}')
+        if self._cmd_time is None or self.t - self._cmd_time > self.cmd_timeout + 1e-9:
+            info = StepInfo(status=Status.TIMEOUT, qdot=np.zeros(self.model.nv),
+                            scale=0.0, flags={Status.TIMEOUT})
+            if self._cmd_time is None:  # never commanded: idle, not a fault
+                info = StepInfo(qdot=np.zeros(self.model.nv))
+        else:
+            info = self.twist_to_qdot(self._cmd, dt)
+        self.qdot = info.qdot
+        if np.any(self.qdot):
+            q = pin.integrate(self.model, self.q, self.qdot * dt)
+            self.q = np.clip(q, self.lower, self.upper)  # round-off only (step 4 lands)
+        self.t += dt
+        self.info = info
+        return info
+
+    # --- inverse kinematics -------------------------------------------------------------
+    def solve_ik(self, wMc_des: pin.SE3, q_seed=None, tol: float = 1e-6,
+                 max_iter: int = 500, damping: float = 1e-3) -> tuple[np.ndarray, bool, float]:
+        """Joint configuration putting the camera at ``wMc_des``, by iterating DLS on the
+        camera-frame error ``log6(wMc⁻¹ wMc_des)`` from ``q_seed`` (current q by default),
+        kept within the position limits. Returns ``(q, converged, error_norm)``; does not
+        move the arm."""
+        q = self.q.copy() if q_seed is None else self._check_q(q_seed, 'q_seed')
+        err = np.inf
+        for _ in range(max_iter):
+            e = np.array(pin.log6(self.wMc(q).inverse() * wMc_des).vector)
+            err = float(np.linalg.norm(e))
+            if err < tol:
+                return q, True, err
+            J = self.camera_jacobian(q)
+            dq = J.T @ np.linalg.solve(J @ J.T + damping ** 2 * np.eye(6), e)
+            n = np.linalg.norm(dq)
+            if n > 0.5:  # keep steps small where the linearisation is poor
+                dq *= 0.5 / n
+            q = np.clip(pin.integrate(self.model, q, dq), self.lower, self.upper)
+        return q, False, err
+
+    def ik_for_cMo(self, cMo_des: pin.SE3, q_seed=None, **kw):
+        """:meth:`solve_ik` for a desired target pose in the camera, ``cMo``."""
+        return self.solve_ik(self.wMo * cMo_des.inverse(), q_seed, **kw)
+
+    def move_to_camera_pose(self, wMc_des: pin.SE3, q_seed=None, **kw) -> tuple[bool, float]:
+        """Jump to the IK solution for ``wMc_des`` if it converges; returns (ok, error)."""
+        q, ok, err = self.solve_ik(wMc_des, q_seed, **kw)
+        if ok:
+            self.set_q(q)
+        return ok, err
