@@ -1,0 +1,135 @@
+"""Control law (no ROS). DESIGN.md §4, paper eq. (17).
+
+``v_c = −λ L̂⁺ (s − s*)``: ``v_c = (v, ω)`` (6,) is the camera twist in the current camera
+frame (m/s, rad/s); ``L̂`` is the interaction matrix with the estimated radius ``r̂``,
+evaluated at the current features, the desired ones, or their mean (as ViSP offers).
+
+Gain: constant, or adaptive as ViSP's ``vpAdaptiveGain``
+``λ(x) = (λ₀ − λ∞) exp(−λ'₀ x / (λ₀ − λ∞)) + λ∞`` with ``x = ‖s − s*‖∞`` (infinity norm,
+as ViSP), λ₀ the gain at 0, λ∞ the gain at infinity, λ'₀ the slope at 0.
+
+Saturation scales the *whole* twist (direction kept) so ``‖v‖ ≤ v_max`` and ``‖ω‖ ≤ ω_max``.
+Convergence: ``‖s − s*‖₂ < tol``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .features import FeatureSet, check_radius
+from .geometry import GeometryError
+from .measurement import Observation
+
+INTERACTION_CHOICES = ('current', 'desired', 'mean')
+
+
+class ControlError(GeometryError):
+    """The control law cannot produce a valid twist (non-finite error or matrix)."""
+
+
+@dataclass(frozen=True)
+class AdaptiveGain:
+    """ViSP's adaptive gain. ``lambda_0`` at x = 0, ``lambda_inf`` as x → ∞, ``slope_0`` =
+    dλ/dx at 0 (magnitude). Requires ``lambda_0 > lambda_inf > 0``, ``slope_0 > 0``."""
+
+    lambda_0: float = 4.0
+    lambda_inf: float = 0.4
+    slope_0: float = 30.0
+
+    def __post_init__(self):
+        vals = (self.lambda_0, self.lambda_inf, self.slope_0)
+        if not all(np.isfinite(v) for v in vals):
+            raise ValueError(f'adaptive gain parameters must be finite, got {vals}')
+        if not (self.lambda_0 > self.lambda_inf > 0 and self.slope_0 > 0):
+            raise ValueError('adaptive gain needs lambda_0 > lambda_inf > 0 and slope_0 > 0, '
+                             f'got {vals}')
+
+    def __call__(self, x: float) -> float:
+        d = self.lambda_0 - self.lambda_inf
+        return d * np.exp(-self.slope_0 * x / d) + self.lambda_inf
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One step of the law: twist (6,), error (n,), gain used, ‖e‖₂, converged flag."""
+
+    v_c: np.ndarray
+    error: np.ndarray
+    gain: float
+    error_norm: float
+    converged: bool
+    saturated: bool
+
+
+def saturate(v_c: np.ndarray, v_max: float, w_max: float) -> tuple[np.ndarray, bool]:
+    """Scale ``v_c`` uniformly so ``‖v‖ ≤ v_max`` and ``‖ω‖ ≤ w_max`` (direction kept)."""
+    nv, nw = float(np.linalg.norm(v_c[:3])), float(np.linalg.norm(v_c[3:]))
+    k = min(1.0, v_max / nv if nv > 0 else np.inf, w_max / nw if nw > 0 else np.inf)
+    return (v_c * k, True) if k < 1.0 else (v_c, False)
+
+
+class Controller:
+    """``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
+
+    r_hat        estimated radius r̂ (m), finite and > 0 (``ValueError`` otherwise).
+    gain         constant λ > 0, or an :class:`AdaptiveGain`.
+    interaction  'current' | 'desired' | 'mean': where L̂ is evaluated.
+    v_max, w_max twist saturation (m/s, rad/s); ``inf`` disables it.
+    tol          convergence threshold on ‖s − s*‖₂.
+    """
+
+    def __init__(self, features: FeatureSet, r_hat: float, gain: float | AdaptiveGain = 0.5,
+                 interaction: str = 'current', v_max: float = np.inf, w_max: float = np.inf,
+                 tol: float = 1e-4):
+        self.features = features
+        self.r_hat = check_radius(r_hat)
+        if not isinstance(gain, AdaptiveGain):
+            gain = float(gain)
+            if not np.isfinite(gain) or gain <= 0:
+                raise ValueError(f'gain λ must be finite and > 0, got {gain}')
+        self.gain = gain
+        if interaction not in INTERACTION_CHOICES:
+            raise ValueError(f'interaction must be one of {INTERACTION_CHOICES}, '
+                             f'got {interaction!r}')
+        self.interaction = interaction
+        for nm, val in (('v_max', v_max), ('w_max', w_max), ('tol', tol)):
+            if np.isnan(val) or val <= 0:
+                raise ValueError(f'{nm} must be > 0, got {val}')
+        self.v_max, self.w_max, self.tol = float(v_max), float(w_max), float(tol)
+        self._L_desired = features.interaction(features.desired_obs, self.r_hat)
+
+    def lam(self, error: np.ndarray) -> float:
+        """Gain for this error (constant, or adaptive on ``‖e‖∞``)."""
+        if isinstance(self.gain, AdaptiveGain):
+            return self.gain(float(np.max(np.abs(error))))
+        return self.gain
+
+    def L_hat(self, obs: Observation) -> np.ndarray:
+        """``L̂`` (n×6) at current / desired / mean features."""
+        if self.interaction == 'desired':
+            return self._L_desired
+        L = self.features.interaction(obs, self.r_hat)
+        return L if self.interaction == 'current' else 0.5 * (L + self._L_desired)
+
+    def compute(self, obs: Observation) -> ControlOutput:
+        """Twist for the current observation. Raises a ``ValueError`` subclass
+        (:class:`~sphere_servo.core.measurement.MeasurementError` or :class:`ControlError`)
+        instead of ever returning a non-finite twist: the caller then sends zero velocity."""
+        e = self.features.error(obs)
+        if not np.all(np.isfinite(e)):
+            raise ControlError(f'feature error is not finite: {e}')
+        L = self.L_hat(obs)
+        lam = self.lam(e)
+        try:
+            if L.shape[0] == L.shape[1]:
+                v_c = -lam * np.linalg.solve(L, e)
+            else:
+                v_c = -lam * (np.linalg.pinv(L) @ e)
+        except np.linalg.LinAlgError as exc:
+            raise ControlError(f'interaction matrix is singular: {exc}') from None
+        if not np.all(np.isfinite(v_c)):
+            raise ControlError('control law produced a non-finite twist')
+        v_c, sat = saturate(v_c, self.v_max, self.w_max)
+        norm = float(np.linalg.norm(e))
+        return ControlOutput(v_c, e, lam, norm, norm < self.tol, sat)

@@ -1,0 +1,53 @@
+"""Pose generators shared by the core tests (not a test module)."""
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.geometry import exp3, look_at
+from sphere_servo.core.measurement import MeasurementError, observe
+from sphere_servo.core.targets import Target
+
+#: desired pose used across the core tests: 0.45 m in front of the marked cap
+CMO_DESIRED = pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.45]))
+
+
+def camera_at(eye, roll_deg: float = 0.0, aim=(0.0, 0.0, 0.0)) -> pin.SE3:
+    """``cMo`` of a camera at ``eye`` (target frame) aimed at ``aim``, rolled about its
+    optical axis by ``roll_deg``."""
+    oMc = look_at(np.asarray(eye, float), np.asarray(aim, float), up=(0.0, -1.0, 0.0))
+    return (oMc * pin.SE3(exp3([0.0, 0.0, np.radians(roll_deg)]), np.zeros(3))).inverse()
+
+
+#: a large displacement: 21.7 cm and 120.7° from CMO_DESIRED, both marks visible
+CMO_FAR_START = camera_at([0.15, -0.12, -0.35], roll_deg=65.0)
+
+
+def random_visible_poses(target: Target, n: int, seed: int = 0,
+                         camera: CameraIntrinsics | None = None) -> list[pin.SE3]:
+    """``n`` random poses ``cMo`` at 0.25–1.0 m from which the sphere is entirely in front
+    of the camera and both marks are visible (and in the image, if ``camera`` is given)."""
+    rng = np.random.default_rng(seed)
+    camera = camera or CameraIntrinsics()
+    poses = []
+    while len(poses) < n:
+        d = rng.uniform(0.25, 1.0)
+        direction = rng.normal(size=3)
+        direction[2] = -abs(direction[2]) - 0.5  # the marked cap faces −z
+        eye = d * direction / np.linalg.norm(direction)
+        aim = rng.normal(size=3) * 0.2 * target.radius
+        cMo = camera_at(eye, rng.uniform(-180, 180), aim)
+        try:
+            obs = observe(cMo, target)
+        except MeasurementError:
+            continue
+        rays = np.array([obs.sphere.b, *obs.q.values()])
+        if np.all(camera.in_image(camera.project(rays), margin=5)):
+            poses.append(cMo)
+    return poses
+
+
+def moved(cMo: pin.SE3, xi: np.ndarray) -> pin.SE3:
+    """Pose after the camera moves by the twist ``xi`` (camera frame) for unit time."""
+    return pin.exp6(pin.Motion(np.asarray(xi, float))).inverse() * cMo

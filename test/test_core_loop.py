@@ -1,0 +1,117 @@
+"""Control law and the headless closed loop (issue 2; paper §III and §IV.A)."""
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from core_poses import CMO_DESIRED, CMO_FAR_START
+from sphere_servo.core.control import AdaptiveGain, Controller, saturate
+from sphere_servo.core.features import check_radius, make_feature_set
+from sphere_servo.core.geometry import rotation_angle_deg
+from sphere_servo.core.loop import run_loop
+from sphere_servo.core.measurement import observe
+from sphere_servo.core.targets import cc_target, special_sphere
+
+
+def test_far_start_is_a_large_displacement_with_marks_visible():
+    cdMc = CMO_DESIRED * CMO_FAR_START.inverse()
+    assert np.linalg.norm(cdMc.translation) >= 0.20
+    assert rotation_angle_deg(cdMc.rotation) >= 60.0
+    for target in (special_sphere(), cc_target()):
+        observe(CMO_FAR_START, target)  # raises if a mark is hidden
+
+
+def test_cc_target_all_three_sets_converge_and_s_is_straight():
+    target = cc_target()
+    results = {fs: run_loop(target, CMO_FAR_START, CMO_DESIRED, fs, dt=0.1, gain=0.5,
+                            max_iter=3000) for fs in ('s_cc', 's_n', 's')}
+    for name, res in results.items():
+        print(f'{name}: path {res.path_length:.4f} m, straight {res.straight_distance:.4f} m, '
+              f'ratio {res.path_length / res.straight_distance:.4f}, {res.iterations} it')
+        assert res.converged, (name, res.reason)
+        dt_err, dr_err = res.final_pose_error()
+        assert dt_err < 1e-4 and dr_err < 0.05, (name, dt_err, dr_err)
+    s_res = results['s']
+    assert s_res.path_length / s_res.straight_distance < 1.01
+    # the other two sets do not move in a straight line from this start
+    assert results['s_n'].path_length / results['s_n'].straight_distance > 1.01
+
+
+@pytest.mark.parametrize('name', ['s_n', 's'])
+def test_special_sphere_converges_from_the_same_start(name):
+    res = run_loop(special_sphere(), CMO_FAR_START, CMO_DESIRED, name, dt=0.1, gain=0.5,
+                   max_iter=3000)
+    assert res.converged, res.reason
+    assert res.final_pose_error()[0] < 1e-4
+
+
+@pytest.mark.parametrize('ratio', [0.05, 0.5, 1.0, 2.0, 20.0])
+def test_sn_converges_for_any_positive_radius_estimate(ratio):
+    """Paper §III: L_sn L̂_sn⁻¹ > 0 ⇔ r̂ > 0. λ·dt = 0.02 keeps the *discrete* loop within
+    its stability margin up to r̂/r = 20 (the paper's proof is in continuous time)."""
+    target = special_sphere()
+    res = run_loop(target, CMO_FAR_START, CMO_DESIRED, 's_n', r_hat=ratio * target.radius,
+                   dt=0.04, gain=0.5, max_iter=30000, tol=1e-3)
+    assert res.converged, (ratio, res.reason, res.iterations)
+    assert res.final_pose_error()[0] < 1e-3 * target.radius * 5
+
+
+@pytest.mark.parametrize('bad', [0.0, -0.05, np.nan, np.inf, -np.inf, 'abc', None])
+def test_bad_radius_estimate_is_refused(bad):
+    target = special_sphere()
+    fs = make_feature_set('s_n', observe(CMO_DESIRED, target))
+    with pytest.raises(ValueError, match='radius'):
+        Controller(fs, bad)
+    with pytest.raises(ValueError, match='radius'):
+        check_radius(bad)
+    with pytest.raises(ValueError, match='radius'):
+        fs.interaction(observe(CMO_FAR_START, target), bad)
+
+
+def test_negative_radius_would_diverge():
+    """Necessity side of §III, shown on the loop itself: with r̂ < 0 forced past the check,
+    the translation error grows."""
+    target = special_sphere()
+    fs = make_feature_set('s_n', observe(CMO_DESIRED, target))
+    L_neg = fs.interaction_from(fs.desired, 1.0)
+    L_neg[:3, :3] = +np.eye(3) / target.radius  # what r̂ = −r would give
+    L_true = fs.interaction_from(fs.desired, target.radius)
+    eig = np.linalg.eigvals(L_true @ np.linalg.inv(L_neg))
+    assert np.min(eig.real) < 0
+
+
+@pytest.mark.parametrize('interaction', ['current', 'desired', 'mean'])
+def test_interaction_choices_and_adaptive_gain_converge(interaction):
+    small = pin.SE3(pin.exp3(np.array([0.1, -0.15, 0.2])), np.array([0.03, -0.02, 0.40]))
+    res = run_loop(special_sphere(), small, CMO_DESIRED, 's_n', interaction=interaction,
+                   gain=AdaptiveGain(2.0, 0.3, 10.0), dt=0.1, max_iter=2000)
+    assert res.converged, res.reason
+
+
+def test_adaptive_gain_formula():
+    g = AdaptiveGain(4.0, 0.4, 30.0)
+    assert g(0.0) == pytest.approx(4.0)
+    assert g(1e6) == pytest.approx(0.4)
+    h = 1e-7
+    assert (g(h) - g(0.0)) / h == pytest.approx(-30.0, rel=1e-4)
+    with pytest.raises(ValueError):
+        AdaptiveGain(0.4, 4.0, 30.0)
+
+
+def test_saturation_keeps_direction():
+    v = np.array([1.0, -2.0, 0.5, 0.3, 0.0, -0.4])
+    out, sat = saturate(v, v_max=0.1, w_max=1.0)
+    assert sat
+    assert np.linalg.norm(out[:3]) == pytest.approx(0.1)
+    assert np.allclose(np.cross(out[:3], v[:3]), 0) and np.allclose(np.cross(out[3:], v[3:]), 0)
+    assert np.allclose(out / np.linalg.norm(out), v / np.linalg.norm(v))
+    same, sat2 = saturate(v * 1e-3, 0.1, 1.0)
+    assert not sat2 and np.array_equal(same, v * 1e-3)
+
+
+def test_controller_reports_convergence_and_zero_error_at_goal():
+    target = special_sphere()
+    fs = make_feature_set('s_n', observe(CMO_DESIRED, target))
+    out = Controller(fs, target.radius).compute(observe(CMO_DESIRED, target))
+    assert out.converged and np.allclose(out.v_c, 0, atol=1e-12)
