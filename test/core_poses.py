@@ -5,23 +5,10 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.geometry import exp3, look_at
 from sphere_servo.core.measurement import MeasurementError, observe
 from sphere_servo.core.targets import Target
 
-#: desired pose used across the core tests: 0.45 m in front of the marked cap
-CMO_DESIRED = pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.45]))
-
-
-def camera_at(eye, roll_deg: float = 0.0, aim=(0.0, 0.0, 0.0)) -> pin.SE3:
-    """``cMo`` of a camera at ``eye`` (target frame) aimed at ``aim``, rolled about its
-    optical axis by ``roll_deg``."""
-    oMc = look_at(np.asarray(eye, float), np.asarray(aim, float), up=(0.0, -1.0, 0.0))
-    return (oMc * pin.SE3(exp3([0.0, 0.0, np.radians(roll_deg)]), np.zeros(3))).inverse()
-
-
-#: a large displacement: 21.7 cm and 120.7° from CMO_DESIRED, both marks visible
-CMO_FAR_START = camera_at([0.15, -0.12, -0.35], roll_deg=65.0)
+from sphere_servo.core.scenarios import CMO_DESIRED, CMO_FAR_START, camera_at  # noqa: F401
 
 
 def random_visible_poses(target: Target, n: int, seed: int = 0,
