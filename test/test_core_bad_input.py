@@ -103,7 +103,7 @@ def test_singular_configuration_is_a_control_error_not_nan():
     target = special_sphere()
     fs = make_feature_set('s', observe(CMO_DESIRED, target))
     ctrl = Controller(fs, target.radius)
-    ctrl.L_hat = lambda obs: np.zeros((6, 6))  # force a singular L̂
+    ctrl.L_hat = lambda obs, s=None: np.zeros((6, 6))  # force a singular L̂
     with pytest.raises(ControlError, match='singular'):
         ctrl.compute(observe(pin.SE3(np.eye(3), np.array([0.01, 0.0, 0.5])), target))
 

@@ -13,6 +13,7 @@ Convergence: ``‖s − s*‖₂ < tol``.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +65,7 @@ class ControlOutput:
 
 def saturate(v_c: np.ndarray, v_max: float, w_max: float) -> tuple[np.ndarray, bool]:
     """Scale ``v_c`` uniformly so ``‖v‖ ≤ v_max`` and ``‖ω‖ ≤ w_max`` (direction kept)."""
-    nv, nw = float(np.linalg.norm(v_c[:3])), float(np.linalg.norm(v_c[3:]))
+    nv, nw = math.sqrt(float(v_c[:3] @ v_c[:3])), math.sqrt(float(v_c[3:] @ v_c[3:]))
     k = min(1.0, v_max / nv if nv > 0 else np.inf, w_max / nw if nw > 0 else np.inf)
     return (v_c * k, True) if k < 1.0 else (v_c, False)
 
@@ -105,21 +106,23 @@ class Controller:
             return self.gain(float(np.max(np.abs(error))))
         return self.gain
 
-    def L_hat(self, obs: Observation) -> np.ndarray:
-        """``L̂`` (n×6) at current / desired / mean features."""
+    def L_hat(self, obs: Observation, s: np.ndarray | None = None) -> np.ndarray:
+        """``L̂`` (n×6) at current / desired / mean features (``s``: the current features,
+        if already computed)."""
         if self.interaction == 'desired':
             return self._L_desired
-        L = self.features.interaction(obs, self.r_hat)
+        L = self.features.interaction(obs, self.r_hat, s)
         return L if self.interaction == 'current' else 0.5 * (L + self._L_desired)
 
     def compute(self, obs: Observation) -> ControlOutput:
         """Twist for the current observation. Raises a ``ValueError`` subclass
         (:class:`~sphere_servo.core.measurement.MeasurementError` or :class:`ControlError`)
         instead of ever returning a non-finite twist: the caller then sends zero velocity."""
-        e = self.features.error(obs)
-        if not np.all(np.isfinite(e)):
+        s = self.features.features(obs)
+        e = s - self.features.desired
+        if not math.isfinite(float(e @ e)):
             raise ControlError(f'feature error is not finite: {e}')
-        L = self.L_hat(obs)
+        L = self.L_hat(obs, s)
         lam = self.lam(e)
         try:
             if L.shape[0] == L.shape[1]:
@@ -128,8 +131,8 @@ class Controller:
                 v_c = -lam * (np.linalg.pinv(L) @ e)
         except np.linalg.LinAlgError as exc:
             raise ControlError(f'interaction matrix is singular: {exc}') from None
-        if not np.all(np.isfinite(v_c)):
+        if not math.isfinite(float(v_c @ v_c)):
             raise ControlError('control law produced a non-finite twist')
         v_c, sat = saturate(v_c, self.v_max, self.w_max)
-        norm = float(np.linalg.norm(e))
+        norm = math.sqrt(float(e @ e))
         return ControlOutput(v_c, e, lam, norm, norm < self.tol, sat)

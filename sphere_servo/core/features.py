@@ -22,7 +22,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from .geometry import L_omega, log3, skew
+from .geometry import L_omega, cross3, exp3, log3, skew
 from .measurement import (MeasurementError, Observation, P3_over_r, P_over_r, cRo_measured)
 from .targets import CC
 
@@ -64,7 +64,9 @@ class FeatureSet(ABC):
     def features(self, obs: Observation) -> np.ndarray: ...
 
     @abstractmethod
-    def interaction(self, obs: Observation, r_hat: float) -> np.ndarray: ...
+    def interaction(self, obs: Observation, r_hat: float,
+                    s: np.ndarray | None = None) -> np.ndarray:
+        """L (n×6) at ``obs``; ``s`` = ``features(obs)`` if the caller already has it."""
 
     def error(self, obs: Observation) -> np.ndarray:
         """``s − s*`` (n,)."""
@@ -95,13 +97,13 @@ class SnFeatures(FeatureSet):
         """``L_sn`` (6×6) from a feature vector ``s = (s_n,t, θu)`` (eq. 6)."""
         r_hat = check_radius(r_hat)
         L = np.zeros((6, 6))
-        L[:3, :3] = -np.eye(3) / r_hat
+        L[0, 0] = L[1, 1] = L[2, 2] = -1.0 / r_hat
         L[:3, 3:] = skew(s[:3])
         L[3:, 3:] = L_omega(s[3:], +1.0)
         return L
 
-    def interaction(self, obs, r_hat):
-        return self.interaction_from(self.features(obs), r_hat)
+    def interaction(self, obs, r_hat, s=None):
+        return self.interaction_from(self.features(obs) if s is None else s, r_hat)
 
 
 class STFeatures(SnFeatures):
@@ -122,12 +124,15 @@ class STFeatures(SnFeatures):
         cdRc = self.cdRc(obs)
         return np.concatenate([self.s_nt_star - cdRc @ obs.sphere.s_nt, log3(cdRc)])
 
-    def interaction(self, obs, r_hat):
+    def interaction(self, obs, r_hat, s=None):
+        return self.interaction_from(self.features(obs) if s is None else s, r_hat)
+
+    def interaction_from(self, s: np.ndarray, r_hat: float) -> np.ndarray:
+        """``L_s`` (6×6) from ``s = (s_t, θu)``: ᶜ*R_c = exp(θu) (eq. 16)."""
         r_hat = check_radius(r_hat)
-        cdRc = self.cdRc(obs)
         L = np.zeros((6, 6))
-        L[:3, :3] = cdRc / r_hat
-        L[3:, 3:] = L_omega(log3(cdRc), +1.0)
+        L[:3, :3] = exp3(s[3:]) / r_hat
+        L[3:, 3:] = L_omega(s[3:], +1.0)
         return L
 
 
@@ -138,7 +143,7 @@ def _V(q1: np.ndarray, q2: np.ndarray) -> tuple[np.ndarray, float]:
     if m < 1e-12:
         raise MeasurementError('the two marks are seen along the same ray: V is undefined')
     v2 = w / m
-    return np.column_stack([q1, v2, np.cross(q1, v2)]), m
+    return np.column_stack([q1, v2, cross3(q1, v2)]), m
 
 
 class SccFeatures(FeatureSet):
@@ -181,7 +186,7 @@ class SccFeatures(FeatureSet):
         P2r = P3_over_r(obs.sphere, P1r, q2) if obs.kind == CC else P_over_r(obs.sphere, q2)
         return float(np.linalg.norm(P1r)), float(np.linalg.norm(P2r))
 
-    def interaction(self, obs, r_hat):
+    def interaction(self, obs, r_hat, s=None):
         r_hat = check_radius(r_hat)
         sph = obs.sphere
         b, rd = sph.b, sph.r_delta
@@ -191,7 +196,7 @@ class SccFeatures(FeatureSet):
         d1, d2 = self.depths_over_r(obs)
         rho1 = r_hat * d1
         alpha = ((q1 @ q2) - d1 / d2) / m
-        zeta = log3(V @ self.Vd.T)
+        zeta = log3(V @ self.Vd.T) if s is None else s[4:]
         J = L_omega(zeta, -1.0)
         L = np.zeros((7, 6))
         L[0, :3] = (rd * rd / r_hat) * b

@@ -11,12 +11,13 @@ Inputs are in *normalized* image coordinates (``x̄ = K⁻¹ (u, v, 1)``); unit 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
 
-from .geometry import GeometryError, normalize, require_finite
+from .geometry import GeometryError, cross3, normalize, require_finite
 from .targets import CC, SPECIAL, Target
 
 Vec3 = np.ndarray
@@ -75,34 +76,32 @@ def sphere_from_conic(C: np.ndarray) -> SphereMeasurement:
     Raises :class:`MeasurementError` for a conic that is not the image of a sphere in front of
     the camera (degenerate, not an ellipse, NaN).
     """
-    C = require_finite(C, 'conic')
+    C = np.asarray(C, dtype=float)
     if C.shape != (3, 3):
         raise MeasurementError(f'conic must be 3×3, got shape {C.shape}')
-    C = 0.5 * (C + C.T)
-    scale = np.max(np.abs(C))
-    if scale == 0:
+    if not np.isfinite(C).all():
+        raise MeasurementError(f'conic contains NaN or inf: {C!r}')
+    w, V = np.linalg.eigh(0.5 * (C + C.T))  # ascending eigenvalues
+    w0, w1, w2 = w.tolist()
+    eps = 1e-12 * max(abs(w0), abs(w2))
+    if eps == 0.0:
         raise MeasurementError('degenerate conic: all zeros')
-    w, V = np.linalg.eigh(C / scale)
-    pos = w > 1e-12 * np.max(np.abs(w))
-    if np.count_nonzero(pos) == 2:
-        w, V, pos = -w[::-1], V[:, ::-1], ~pos[::-1]
-        pos = w > 1e-12 * np.max(np.abs(w))
-    if np.count_nonzero(pos) != 1 or np.count_nonzero(w < 0) != 2:
+    if w2 > eps and w1 < -eps:       # one positive: b bᵀ − cos²θ I as is
+        lam1, o1, o2, b = w2, w0, w1, V[:, 2]
+    elif w0 < -eps and w1 > eps:     # one negative: the sign is flipped
+        lam1, o1, o2, b = -w0, -w1, -w2, V[:, 0]
+    else:
         raise MeasurementError(f'conic is not the image of a sphere (eigenvalues {w})')
-    i1 = int(np.argmax(w))
-    lam1 = w[i1]
-    others = np.delete(w, i1)
-    lam2 = float(np.mean(others))
-    b = V[:, i1]
+    lam2 = 0.5 * (o1 + o2)
     if b[2] < 0:
         b = -b
     if b[2] <= 1e-12:
         raise MeasurementError('sphere centre is not in front of the camera')
     cos2 = -lam2 / (lam1 - lam2)
-    r_delta = float(np.sqrt(max(0.0, 1.0 - cos2)))
+    r_delta = math.sqrt(max(0.0, 1.0 - cos2))
     if not 0.0 < r_delta < 1.0:
         raise MeasurementError(f'sphere image gives r_δ = {r_delta}, outside (0, 1)')
-    quality = float(abs(others[0] - others[1]) / abs(lam2))
+    quality = abs(o1 - o2) / abs(lam2)
     return SphereMeasurement(b=b, r_delta=r_delta, quality=quality)
 
 
@@ -141,8 +140,11 @@ def conic_pixels_to_normalized(C_px: np.ndarray, K: np.ndarray) -> np.ndarray:
 def unit_ray(xy: np.ndarray) -> Vec3:
     """Normalized image point (x, y) → unit vector ``q = x̄/‖x̄‖``. Raises on NaN/inf (a
     point at infinity)."""
-    xy = require_finite(xy, 'image point')
-    return normalize(np.array([xy[0], xy[1], 1.0]), 'image point')
+    x, y = float(xy[0]), float(xy[1])
+    n = math.sqrt(x * x + y * y + 1.0)
+    if not math.isfinite(n):
+        raise MeasurementError(f'image point contains NaN or inf: ({x}, {y})')
+    return np.array([x / n, y / n, 1.0 / n])
 
 
 def depth_ratio(sphere: SphereMeasurement, q: Vec3) -> float:
@@ -153,7 +155,7 @@ def depth_ratio(sphere: SphereMeasurement, q: Vec3) -> float:
     if cphi <= 0:
         raise MeasurementError('mark direction points away from the sphere')
     sin2 = max(0.0, 1.0 - cphi * cphi)
-    return (cphi - np.sqrt(max(0.0, sphere.r_delta ** 2 - sin2))) / sphere.r_delta
+    return (cphi - math.sqrt(max(0.0, sphere.r_delta ** 2 - sin2))) / sphere.r_delta
 
 
 def P_over_r(sphere: SphereMeasurement, q: Vec3) -> Vec3:
@@ -177,8 +179,7 @@ def P3_over_r(sphere: SphereMeasurement, P1r: Vec3, q3: Vec3) -> Vec3:
 def _rot_from_r3_r2(r3: Vec3, a: Vec3) -> Mat3:
     r3 = normalize(r3, 'r3')
     r2 = normalize(a - (a @ r3) * r3, 'r2 (marks aligned with the centre)')
-    r1 = np.cross(r2, r3)
-    return np.column_stack([r1, r2, r3])
+    return np.array([cross3(r2, r3), r2, r3]).T
 
 
 def cRo_special(sphere: SphereMeasurement, q1: Vec3, q2: Vec3) -> Mat3:
