@@ -22,6 +22,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'arm_sim = sphere_servo.nodes.arm_sim:main',
         ],
     },
 )
