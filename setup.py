@@ -23,6 +23,8 @@ setup(
     entry_points={
         'console_scripts': [
             'arm_sim = sphere_servo.nodes.arm_sim:main',
+            'record = sphere_servo.tools.record:main',
+            'replay = sphere_servo.tools.replay:main',
         ],
     },
 )
