@@ -116,7 +116,7 @@ class Renderer:
     noise_sigma Gaussian noise std (grey levels) added to every channel; ``blur_sigma``
                 Gaussian blur std (px) applied before the noise.
     seed        seeds the background texture and the noise (deterministic images).
-    tip_radius, stick_radius   radii (m) of the CC tip ball and stick; default 0.12 r, 0.04 r.
+    tip_radius, stick_radius   radii (m) of the CC tip ball and stick; default 0.12 r, 0.015 r.
     stick_color rgb8 colour of the CC stick.
     """
 
@@ -144,7 +144,7 @@ class Renderer:
                                            np.random.default_rng(seed))
         r = target.radius
         self.tip_radius = 0.12 * r if tip_radius is None else float(tip_radius)
-        self.stick_radius = 0.04 * r if stick_radius is None else float(stick_radius)
+        self.stick_radius = 0.015 * r if stick_radius is None else float(stick_radius)
         self.axes = np.full(3, r) if target.axes is None else np.asarray(target.axes, float)
         names = target.mark_names
         cols = target.colors
