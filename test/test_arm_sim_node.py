@@ -15,6 +15,7 @@ pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped, Twist  # noqa: E402
 from sensor_msgs.msg import Image, JointState  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 from sphere_servo.nodes.conversions import se3_from_pose, twist_from_array  # noqa: E402
 from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy  # noqa: E402
@@ -58,6 +59,14 @@ class Probe:
                     and {kv.key: kv.value for kv in self.status[-1].values}['sim_time'] == t)
         assert self.spin(WAIT, until=done), 'no image after a command'
 
+    def call(self, service: str):
+        """Call the simulator's std_srvs/Trigger ``/arm_sim/<service>``."""
+        cli = self.node.create_client(Trigger, f'/arm_sim/{service}')
+        assert cli.wait_for_service(timeout_sec=WAIT)
+        fut = cli.call_async(Trigger.Request())
+        assert self.spin(WAIT, until=fut.done)
+        return fut.result()
+
     def oMc(self) -> pin.SE3:
         return se3_from_pose(self.poses[-1].pose)
 
@@ -98,6 +107,13 @@ def test_translation_and_rotation_in_lockstep(launch, probe):
     assert np.linalg.norm(c0Mc1.translation) < 1e-3
     assert np.allclose(pin.log3(c0Mc1.rotation), w * n * DT, atol=2e-3)
     assert probe.status[-1].message == 'ok'
+    # the go_desired service jumps to the IK solution of desired_cMo and publishes its image
+    n = len(probe.images)
+    assert probe.call('go_desired').success
+    assert probe.spin(WAIT, until=lambda: len(probe.images) > n and
+                      probe.poses[-1].header.stamp == probe.images[-1].header.stamp)
+    oMc_des = pose_from_xyz_rpy([0, 0, 0.45], [0, 0, 0]).inverse()  # config/arm_sim.yaml
+    assert np.allclose(probe.oMc().homogeneous, oMc_des.homogeneous, atol=1e-5)
     assert proc.stop() == 0, proc.log()  # SIGINT, as Ctrl-C
 
 

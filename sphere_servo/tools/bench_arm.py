@@ -17,6 +17,7 @@ ratio = value / baseline, target):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import time
@@ -36,72 +37,66 @@ def _row(name, value, unit, baseline, baseline_name, target) -> dict:
             'target': target}
 
 
-def bench_lockstep_cycle(n: int) -> dict:
+@contextlib.contextmanager
+def _sim(mode: str):
+    """An in-process ``ArmSim`` in ``mode`` and a sink node, on their own context and
+    executor; yields ``(sim, sink, executor)``."""
     import rclpy
-    from geometry_msgs.msg import Twist
     from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import Image
 
     from sphere_servo.nodes.arm_sim import ArmSim
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
-        node = ArmSim(context=ctx, parameter_overrides=_params('lockstep'))
+        sim = ArmSim(context=ctx, parameter_overrides=_params(mode))
         sink = rclpy.create_node('bench_arm_sink', context=ctx)
-        got = []
-        sink.create_subscription(Image, 'camera/image_raw', lambda m: got.append(1), 10)
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(sink)
+        yield sim, sink, ex
+        sim.destroy_node()
+        sink.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def bench_lockstep_cycle(n: int) -> dict:
+    from geometry_msgs.msg import Twist
+    from sensor_msgs.msg import Image
+
+    with _sim('lockstep') as (sim, sink, ex):
+        sink.create_subscription(Image, 'camera/image_raw', lambda m: None, 10)
         deadline = time.monotonic() + 5.0
-        while node.pub_image.get_subscription_count() == 0 and time.monotonic() < deadline:
+        while sim.pub_image.get_subscription_count() == 0 and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.05)
         cmd = Twist()
         cmd.linear.x, cmd.linear.z, cmd.angular.z = 0.01, 0.02, 0.05
         cycle, render = [], []
         for _ in range(n):
             t0 = time.perf_counter()
-            node._on_cmd(cmd)
+            sim._on_cmd(cmd)
             cycle.append(time.perf_counter() - t0)
-            cMo = node.arm.cMo()
+            cMo = sim.arm.cMo()
             t0 = time.perf_counter()
-            node.renderer.render(cMo)
+            sim.renderer.render(cMo)
             render.append(time.perf_counter() - t0)
             ex.spin_once(timeout_sec=0.0)  # deliver (outside the timed part)
-        node.destroy_node()
-        sink.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=ctx)
     return _row('arm_sim lockstep cycle (integrate+render+publish 640x480)',
                 1e3 * statistics.median(cycle), 'ms', 1e3 * statistics.median(render),
                 'renderer alone', '<= 10 ms')
 
 
 def bench_realtime_rate(seconds: float) -> dict:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import Image
 
-    from sphere_servo.nodes.arm_sim import ArmSim
-
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    try:
-        node = ArmSim(context=ctx, parameter_overrides=_params('realtime'))
-        sink = rclpy.create_node('bench_arm_sink', context=ctx)
-        stamps = []
+    stamps = []
+    with _sim('realtime') as (sim, sink, ex):
         sink.create_subscription(Image, 'camera/image_raw',
                                  lambda m: stamps.append(time.monotonic()), 50)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-        ex.add_node(sink)
+        ex.add_node(sim)
         end = time.monotonic() + seconds + 1.0  # 1 s to settle discovery
         while time.monotonic() < end:
             ex.spin_once(timeout_sec=0.01)
-        node.destroy_node()
-        sink.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=ctx)
     s = np.array(stamps)
     s = s[s >= s[-1] - seconds] if len(s) else s
     rate = (len(s) - 1) / (s[-1] - s[0]) if len(s) > 1 else 0.0
