@@ -145,7 +145,8 @@ def test_record_complete_bag(launch, test_node, tmp_path, storage):
 def test_interrupted_recording_is_readable(launch, test_node, tmp_path, sig, storage):
     node, spin = test_node
     out = tmp_path / 'bag'
-    rec, talker = start_recording(launch, node, spin, out, '--storage', storage)
+    rec, talker = start_recording(launch, node, spin, out, '--storage', storage,
+                                  '--compression', 'zstd')
     publish_at(talker, spin, 20)
     rec.popen.send_signal(sig)          # mid-stream: keep publishing while it stops
     publish_at(talker, spin, 15, start=20)
@@ -159,6 +160,11 @@ def test_interrupted_recording_is_readable(launch, test_node, tmp_path, sig, sto
     assert f'/camera/image_raw: {len(ids)}' in rec.log()
     meta = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     assert meta['message_count'] == sum(len(v) for v in msgs.values())
+    assert msgs['/camera/image_raw'][-1][1].data.tobytes() == frame_bytes(ids[-1])
+    data = next(out.glob('*.mcap' if storage == 'mcap' else '*.db3')).stat().st_size
+    assert data < len(ids) * W * H * 3 / 2, 'zstd compression was not applied'
+    if storage == 'sqlite3':  # per-message compression is declared in metadata.yaml
+        assert (meta['compression_mode'], meta['compression_format']) == ('message', 'zstd')
 
 
 def write_timing_bag(path: Path, storage: StoragePlugin) -> list[int]:

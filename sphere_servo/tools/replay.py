@@ -137,12 +137,17 @@ class Player:
                 step = min(step, max(0.0, self.next_clock - now))
             time.sleep(step)
 
-    def play_once(self) -> None:
+    def play_once(self) -> int:
+        """One pass over the bag; returns how many messages it published."""
+        import rclpy
+        sent = 0
         rate = None if self.opts.max_rate else self.opts.rate
         t0_bag = None
         t0_wall = None
         self.next_clock = time.monotonic()
         for conn, ts, raw in iter_raw(self.reader, self.conns):
+            if not rclpy.ok():  # SIGTERM shut the context down
+                break
             if t0_bag is None:
                 t0_bag, t0_wall = ts, time.monotonic()
             if rate is not None:
@@ -153,6 +158,8 @@ class Player:
             topic = self.topic_of[conn.id]
             self.pubs[topic].publish(raw)
             self.counts[topic] += 1
+            sent += 1
+        return sent
 
     def flush(self, timeout: float = 3.0) -> None:
         """Wait until reliable subscribers acknowledged what was published, so the last
@@ -203,8 +210,8 @@ def main(args=None) -> int:
         print(f'replay: playing {opts.bag} ({len(conns)} topics)', flush=True)
         started = time.monotonic()
         while True:
-            player.play_once()
-            if not opts.loop or not rclpy.ok():
+            sent = player.play_once()
+            if not opts.loop or not rclpy.ok() or sent == 0:
                 break
         player.flush()
     except (KeyboardInterrupt, ExternalShutdownException):
