@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from ..core.measurement import (MeasurementError, Observation, SphereMeasurement,
-                                sphere_from_conic, unit_ray)
+                                conic_from_moments, sphere_from_conic, unit_ray)
 from ..core.targets import CC, SPECIAL, Target
 
 ENCODINGS = ('rgb8', 'bgr8', 'mono8')
@@ -292,6 +292,8 @@ class Detector:
                              float(np.degrees(ang))), {}, cut, n_pts)
             det.marks = self._marks(img, rgb, V, float(thr), sphere, (px, py, u0, v0), ep)
             return det
+        if rgb is not None and self._fills_frame(rgb):
+            reason = 'target too large for the image (the body fills the frame)'
         return Detection(False, reason, marks={n: Mark(n) for n in self.mark_names})
 
     # --- steps ----------------------------------------------------------------------------
@@ -382,6 +384,16 @@ class Detector:
         rms = float(np.sqrt(np.mean(sampson_distance(C, edge) ** 2)))
         return C, rms, len(edge), cut
 
+    def _fills_frame(self, rgb: np.ndarray) -> bool:
+        """All four corners and the centre of the image are body-coloured."""
+        H, W = rgb.shape[:2]
+        k = max(1, min(H, W) // 20)
+        patches = [rgb[:k, :k], rgb[:k, -k:], rgb[-k:, :k], rgb[-k:, -k:],
+                   rgb[H // 2 - k // 2:H // 2 + k // 2 + 1, W // 2 - k // 2:W // 2 + k // 2 + 1]]
+        return all(np.linalg.norm(self._to_chroma(p.reshape(-1, 3).mean(axis=0))
+                                  - self._chroma['body']) < self.body_chroma_tol
+                   for p in patches)
+
     def _body_coloured(self, rgb: np.ndarray, pts: np.ndarray, n: np.ndarray) -> bool:
         """Median chromaticity a few pixels inside the edge matches the body colour."""
         p = np.round(pts - (self.K + 1) * n).astype(int)
@@ -452,6 +464,10 @@ class Detector:
             if name in self.surface_marks:
                 inner = cv2.erode(full, np.ones((3, 3), np.uint8))[yy, xx] > 0
                 alpha[inner] = 1.0
+            else:
+                # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
+                # with the background, whose chromaticity says nothing of coverage)
+                alpha = full[yy, xx].astype(np.float64)
             area = float(alpha.sum())
             if area < self.min_mark_px:
                 continue
@@ -462,12 +478,33 @@ class Detector:
             if name in self.surface_marks:
                 xy = self._cap_centre(sphere, xn, yn, alpha)
             else:
-                xy = np.array([np.sum(alpha * xn), np.sum(alpha * yn)]) / area
+                xy = self._ball_centre(u, v, alpha, (px, py, u0, v0))
             if xy is None:
                 continue
             uv = np.array([px * xy[0] + u0, py * xy[1] + v0])
             marks[name] = Mark(name, uv, xy, True, area)
         return marks
+
+    @staticmethod
+    def _ball_centre(u, v, w, intr) -> np.ndarray | None:
+        """Image of a ball's centre from its filled blob (pixels ``u, v``, weights ``w``):
+        the blob's moments (Sheppard-corrected, +1/12 px²) give its ellipse, whose conic is
+        that of a sphere (DESIGN.md §2), and ``b`` of :func:`sphere_from_conic` is the
+        direction of the ball's centre — unlike the blob centroid, which perspective shifts
+        outwards."""
+        px, py, u0, v0 = intr
+        sw = w.sum()
+        cu, cv_ = np.sum(w * u) / sw, np.sum(w * v) / sw
+        du, dv = u - cu, v - cv_
+        S = np.array([[np.sum(w * du * du), np.sum(w * du * dv)],
+                      [np.sum(w * du * dv), np.sum(w * dv * dv)]]) / sw + np.eye(2) / 12.0
+        A = np.diag([1.0 / px, 1.0 / py])
+        c_n = np.array([(cu - u0) / px, (cv_ - v0) / py])
+        try:
+            b = sphere_from_conic(conic_from_moments(c_n, A @ S @ A.T)).b
+        except MeasurementError:
+            return c_n
+        return b[:2] / b[2]
 
     @staticmethod
     def _cap_centre(sphere: SphereMeasurement, xn, yn, w) -> np.ndarray | None:
