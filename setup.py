@@ -23,6 +23,10 @@ setup(
     entry_points={
         'console_scripts': [
             'arm_sim = sphere_servo.nodes.arm_sim:main',
+            'detector = sphere_servo.nodes.detector:main',
+            'features = sphere_servo.nodes.features:main',
+            'servo = sphere_servo.nodes.servo:main',
+            'launcher = sphere_servo.tools.launcher:main',
             'record = sphere_servo.tools.record:main',
             'replay = sphere_servo.tools.replay:main',
         ],

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import itertools
 import os
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+
+from sphere_servo.tools.launcher import interrupt
 
 REPO = Path(__file__).resolve().parents[1]
 _domain_counter = itertools.count()
@@ -90,14 +91,7 @@ class Proc:
 
     def stop(self, timeout: float = 10.0) -> int:
         """SIGINT (as Ctrl-C), wait, then SIGKILL; returns the exit code."""
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGINT)
-            try:
-                self.popen.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(5)
-        return self.popen.returncode
+        return interrupt(self.popen, timeout)
 
 
 @pytest.fixture

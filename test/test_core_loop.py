@@ -115,3 +115,22 @@ def test_controller_reports_convergence_and_zero_error_at_goal():
     fs = make_feature_set('s_n', observe(CMO_DESIRED, target))
     out = Controller(fs, target.radius).compute(observe(CMO_DESIRED, target))
     assert out.converged and np.allclose(out.v_c, 0, atol=1e-12)
+
+
+@pytest.mark.parametrize('name', ['s_n', 's'])
+@pytest.mark.parametrize('interaction', ['current', 'desired', 'mean'])
+def test_vector_law_equals_the_observation_law(name, interaction):
+    """The servo node's law (feature vectors only) gives the same twist as the law on
+    observations, for the sets whose L depends on s alone."""
+    from sphere_servo.core.control import VectorController
+    target = special_sphere()
+    fs = make_feature_set(name, observe(CMO_DESIRED, target))
+    kw = dict(gain=0.7, interaction=interaction, v_max=0.05, w_max=0.3)
+    ctrl = Controller(fs, 0.5 * target.radius, **kw)
+    vec = VectorController(name, 0.5 * target.radius, **kw)
+    obs = observe(CMO_FAR_START, target)
+    a = ctrl.compute(obs)
+    b = vec.compute(fs.features(obs), fs.desired)
+    assert np.allclose(a.v_c, b.v_c, atol=1e-12) and a.saturated == b.saturated
+    with pytest.raises(ValueError, match='supports'):
+        VectorController('s_cc', target.radius)

@@ -18,11 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .features import FeatureSet, check_radius
+from .features import FeatureSet, STFeatures, SnFeatures, check_radius
 from .geometry import GeometryError
 from .measurement import Observation
 
 INTERACTION_CHOICES = ('current', 'desired', 'mean')
+#: L(s, r̂) of the sets whose interaction matrix depends on the feature vector only
+VECTOR_INTERACTIONS = {'s_n': SnFeatures.interaction_from, 's': STFeatures.interaction_from}
 
 
 class ControlError(GeometryError):
@@ -70,20 +72,12 @@ def saturate(v_c: np.ndarray, v_max: float, w_max: float) -> tuple[np.ndarray, b
     return (v_c * k, True) if k < 1.0 else (v_c, False)
 
 
-class Controller:
-    """``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
+class _Law:
+    """What every form of the law shares: gain, saturation, convergence, the solve."""
 
-    r_hat        estimated radius r̂ (m), finite and > 0 (``ValueError`` otherwise).
-    gain         constant λ > 0, or an :class:`AdaptiveGain`.
-    interaction  'current' | 'desired' | 'mean': where L̂ is evaluated.
-    v_max, w_max twist saturation (m/s, rad/s); ``inf`` disables it.
-    tol          convergence threshold on ‖s − s*‖₂.
-    """
-
-    def __init__(self, features: FeatureSet, r_hat: float, gain: float | AdaptiveGain = 0.5,
+    def __init__(self, r_hat: float, gain: float | AdaptiveGain = 0.5,
                  interaction: str = 'current', v_max: float = np.inf, w_max: float = np.inf,
                  tol: float = 1e-4):
-        self.features = features
         self.r_hat = check_radius(r_hat)
         if not isinstance(gain, AdaptiveGain):
             gain = float(gain)
@@ -98,7 +92,6 @@ class Controller:
             if np.isnan(val) or val <= 0:
                 raise ValueError(f'{nm} must be > 0, got {val}')
         self.v_max, self.w_max, self.tol = float(v_max), float(w_max), float(tol)
-        self._L_desired = features.interaction(features.desired_obs, self.r_hat)
 
     def lam(self, error: np.ndarray) -> float:
         """Gain for this error (constant, or adaptive on ``‖e‖∞``)."""
@@ -106,23 +99,15 @@ class Controller:
             return self.gain(float(np.max(np.abs(error))))
         return self.gain
 
-    def L_hat(self, obs: Observation, s: np.ndarray | None = None) -> np.ndarray:
-        """``L̂`` (n×6) at current / desired / mean features (``s``: the current features,
-        if already computed)."""
+    def _combine(self, L_current, L_desired) -> np.ndarray:
         if self.interaction == 'desired':
-            return self._L_desired
-        L = self.features.interaction(obs, self.r_hat, s)
-        return L if self.interaction == 'current' else 0.5 * (L + self._L_desired)
+            return L_desired
+        return L_current if self.interaction == 'current' else 0.5 * (L_current + L_desired)
 
-    def compute(self, obs: Observation) -> ControlOutput:
-        """Twist for the current observation. Raises a ``ValueError`` subclass
-        (:class:`~sphere_servo.core.measurement.MeasurementError` or :class:`ControlError`)
-        instead of ever returning a non-finite twist: the caller then sends zero velocity."""
-        s = self.features.features(obs)
-        e = s - self.features.desired
+    def _twist(self, e: np.ndarray, L: np.ndarray) -> ControlOutput:
+        """``−λ L⁺ e``, saturated; raises :class:`ControlError` rather than return NaN."""
         if not math.isfinite(float(e @ e)):
             raise ControlError(f'feature error is not finite: {e}')
-        L = self.L_hat(obs, s)
         lam = self.lam(e)
         try:
             if L.shape[0] == L.shape[1]:
@@ -136,3 +121,60 @@ class Controller:
         v_c, sat = saturate(v_c, self.v_max, self.w_max)
         norm = math.sqrt(float(e @ e))
         return ControlOutput(v_c, e, lam, norm, norm < self.tol, sat)
+
+
+class Controller(_Law):
+    """``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
+
+    r_hat        estimated radius r̂ (m), finite and > 0 (``ValueError`` otherwise).
+    gain         constant λ > 0, or an :class:`AdaptiveGain`.
+    interaction  'current' | 'desired' | 'mean': where L̂ is evaluated.
+    v_max, w_max twist saturation (m/s, rad/s); ``inf`` disables it.
+    tol          convergence threshold on ‖s − s*‖₂.
+    """
+
+    def __init__(self, features: FeatureSet, r_hat: float, **kw):
+        super().__init__(r_hat, **kw)
+        self.features = features
+        self._L_desired = features.interaction(features.desired_obs, self.r_hat)
+
+    def L_hat(self, obs: Observation, s: np.ndarray | None = None) -> np.ndarray:
+        """``L̂`` (n×6) at current / desired / mean features (``s``: the current features,
+        if already computed)."""
+        if self.interaction == 'desired':
+            return self._L_desired
+        return self._combine(self.features.interaction(obs, self.r_hat, s), self._L_desired)
+
+    def compute(self, obs: Observation) -> ControlOutput:
+        """Twist for the current observation. Raises a ``ValueError`` subclass
+        (:class:`~sphere_servo.core.measurement.MeasurementError` or :class:`ControlError`)
+        instead of ever returning a non-finite twist: the caller then sends zero velocity."""
+        s = self.features.features(obs)
+        return self._twist(s - self.features.desired, self.L_hat(obs, s))
+
+
+class VectorController(_Law):
+    """The same law from feature *vectors* alone, as the servo node receives them.
+
+    For ``s_n`` (eq. 6) and ``s`` (eq. 16) the interaction matrix is a function of the
+    feature vector only, so ``compute(s, s_star)`` needs nothing else. (``s_cc``'s ζ rows need
+    the marks' depths: use :class:`Controller` on observations for it.)
+    """
+
+    def __init__(self, feature_set: str, r_hat: float, **kw):
+        super().__init__(r_hat, **kw)
+        try:
+            self._L = VECTOR_INTERACTIONS[feature_set]
+        except KeyError:
+            raise ValueError(f'the vector law supports {tuple(VECTOR_INTERACTIONS)}, '
+                             f'got {feature_set!r}') from None
+        self.feature_set = feature_set
+
+    def compute(self, s: np.ndarray, s_star: np.ndarray) -> ControlOutput:
+        s, s_star = np.asarray(s, dtype=float), np.asarray(s_star, dtype=float)
+        if s.shape != (6,) or s_star.shape != (6,):
+            raise ControlError(f'{self.feature_set} needs 6 features, got {s.shape} and '
+                               f'{s_star.shape}')
+        L_star = self._L(s_star, self.r_hat) if self.interaction != 'current' else None
+        L = self._L(s, self.r_hat) if self.interaction != 'desired' else None
+        return self._twist(s - s_star, self._combine(L, L_star))

@@ -93,7 +93,8 @@ class SnFeatures(FeatureSet):
     def features(self, obs):
         return np.concatenate([obs.sphere.s_nt, log3(self.cdRc(obs))])
 
-    def interaction_from(self, s: np.ndarray, r_hat: float) -> np.ndarray:
+    @staticmethod
+    def interaction_from(s: np.ndarray, r_hat: float) -> np.ndarray:
         """``L_sn`` (6×6) from a feature vector ``s = (s_n,t, θu)`` (eq. 6)."""
         r_hat = check_radius(r_hat)
         L = np.zeros((6, 6))
@@ -127,7 +128,8 @@ class STFeatures(SnFeatures):
     def interaction(self, obs, r_hat, s=None):
         return self.interaction_from(self.features(obs) if s is None else s, r_hat)
 
-    def interaction_from(self, s: np.ndarray, r_hat: float) -> np.ndarray:
+    @staticmethod
+    def interaction_from(s: np.ndarray, r_hat: float) -> np.ndarray:
         """``L_s`` (6×6) from ``s = (s_t, θu)``: ᶜ*R_c = exp(θu) (eq. 16)."""
         r_hat = check_radius(r_hat)
         L = np.zeros((6, 6))

@@ -1,0 +1,436 @@
+"""``launcher``: start the servo pipeline's nodes as separate processes from one YAML config.
+
+    launcher --config special_sphere [--until-converged] [--timeout 120] [--record DIR]
+
+The config is a ROS 2 parameters file (one ``<node>: ros__parameters:`` section per node)
+plus a ``launch:`` section read only by the launcher::
+
+    launch:
+      include: [arm_sim.yaml]   # merged first (paths relative to this file); later wins
+      nodes: [arm_sim, detector, features, servo]
+      teach: true               # arm to desired → teach that image → arm to start
+      timeout: 120.0            # wall seconds for --until-converged
+
+``--config`` takes a path, or a name looked up in the installed ``share/sphere_servo/config``
+and then in the source tree's ``config/``. Executables are resolved as ``ros2 run`` does
+(``get_package_prefix('sphere_servo')/lib/sphere_servo/<name>``), falling back to
+``python -m sphere_servo.nodes.<name>`` when the package is not installed (a source
+checkout). Each process's output is forwarded with a ``[name]`` prefix. Ctrl-C (or SIGTERM)
+stops the servo first (its last word is a zero twist), then the others: SIGINT, then SIGKILL
+after 10 s. With ``--until-converged`` the exit code is 0 when the servo reports
+``converged``, 1 on timeout, 3 if a node died, 4 if the teach sequence failed.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+SOURCE_CONFIG = Path(__file__).resolve().parents[2] / 'config'
+MODULES = {'arm_sim': 'sphere_servo.nodes.arm_sim', 'detector': 'sphere_servo.nodes.detector',
+           'features': 'sphere_servo.nodes.features', 'servo': 'sphere_servo.nodes.servo',
+           'record': 'sphere_servo.tools.record'}
+STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
+
+
+class LaunchError(RuntimeError):
+    """The config or an executable cannot be used."""
+
+
+# --- config --------------------------------------------------------------------------------
+def merge(base: dict, over: dict) -> dict:
+    """Deep merge: dicts merge recursively, anything else in ``over`` replaces."""
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
+            else copy.deepcopy(v)
+    return out
+
+
+def find_config(name: str) -> Path:
+    """A config path from a path or a name (``special_sphere`` or ``special_sphere.yaml``)."""
+    p = Path(name)
+    if p.is_file():
+        return p
+    fname = name if name.endswith('.yaml') else f'{name}.yaml'
+    prefix = package_prefix()
+    dirs = ([prefix / 'share' / 'sphere_servo' / 'config'] if prefix else []) + [SOURCE_CONFIG]
+    for d in dirs:
+        if (d / fname).is_file():
+            return d / fname
+    raise LaunchError(f'config {name!r} not found (looked in {", ".join(map(str, dirs))})')
+
+
+def load_config(path: Path, _seen=()) -> dict:
+    """The merged config of ``path`` and its ``launch.include`` files."""
+    path = Path(path).resolve()
+    if path in _seen:
+        raise LaunchError(f'config include cycle at {path}')
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise LaunchError(f'cannot read config {path}: {exc}') from None
+    if not isinstance(data, dict):
+        raise LaunchError(f'config {path} is not a mapping')
+    merged: dict = {}
+    for inc in (data.get('launch') or {}).get('include', []):
+        merged = merge(merged, load_config(path.parent / inc, (*_seen, path)))
+    merged = merge(merged, data)
+    merged.setdefault('launch', {}).pop('include', None)
+    return merged
+
+
+def node_params(config: dict, node: str) -> dict:
+    """The ``ros__parameters`` of ``node`` in a merged config ({} if none)."""
+    return ((config.get(node) or {}).get('ros__parameters') or {})
+
+
+# --- processes -----------------------------------------------------------------------------
+def package_prefix() -> Path | None:
+    """The install prefix of sphere_servo in the ament index (as ``ros2 run`` finds it), or
+    None when the package is not installed (no ament index, or not in it)."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+        return Path(get_package_prefix('sphere_servo'))
+    except (ImportError, PackageNotFoundError, OSError):  # OSError: no AMENT_PREFIX_PATH
+        return None
+
+
+def node_command(name: str) -> list[str]:
+    """How ``ros2 run sphere_servo <name>`` would start it, or ``python -m`` from source."""
+    prefix = package_prefix()
+    if prefix is not None:
+        exe = prefix / 'lib' / 'sphere_servo' / name
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return [str(exe)]
+    if name not in MODULES:
+        raise LaunchError(f'unknown node {name!r}')
+    return [sys.executable, '-m', MODULES[name]]
+
+
+def interrupt(popen: subprocess.Popen, timeout: float = 10.0) -> int:
+    """Stop a process as Ctrl-C does (SIGINT), SIGKILL it after ``timeout`` s; exit code."""
+    if popen.poll() is None:
+        popen.send_signal(signal.SIGINT)
+        try:
+            popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            popen.kill()
+            popen.wait(5)
+    return popen.returncode
+
+
+@dataclass
+class Child:
+    name: str
+    popen: subprocess.Popen
+    thread: threading.Thread | None = None
+
+
+def _forward(name: str, stream, out) -> None:
+    for line in iter(stream.readline, ''):
+        out.write(f'[{name}] {line}' if line.endswith('\n') else f'[{name}] {line}\n')
+        out.flush()
+    stream.close()
+
+
+@dataclass
+class Launcher:
+    """Starts, watches and stops the pipeline described by a merged config."""
+
+    config: dict
+    out: object = sys.stdout
+    children: dict = field(default_factory=dict)
+    params_file: str = ''
+
+    def start(self, extra: dict | None = None) -> None:
+        """Start every node of ``launch.nodes`` (``extra``: name → extra argv)."""
+        nodes = (self.config.get('launch') or {}).get(
+            'nodes', ['arm_sim', 'detector', 'features', 'servo'])
+        params = {k: v for k, v in self.config.items() if k != 'launch'}
+        fd, self.params_file = tempfile.mkstemp(prefix='sphere_servo_', suffix='.yaml')
+        with os.fdopen(fd, 'w') as fh:
+            yaml.safe_dump(params, fh)
+        for name in nodes:
+            cmd = node_command(name) + ['--ros-args', '--params-file', self.params_file]
+            self._spawn(name, cmd)
+        for name, argv in (extra or {}).items():
+            self._spawn(name, node_command(name) + list(argv))
+
+    def _spawn(self, name: str, cmd: list[str]) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED='1')
+        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 text=True, env=env, start_new_session=True)
+        t = threading.Thread(target=_forward, args=(name, popen.stdout, self.out), daemon=True)
+        t.start()
+        self.children[name] = Child(name, popen, t)
+
+    def dead(self) -> list[str]:
+        """Names of nodes that have exited."""
+        return [n for n, c in self.children.items() if c.popen.poll() is not None]
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        """Stop every node (servo first), SIGINT then SIGKILL; return the exit codes."""
+        order = [n for n in STOP_ORDER if n in self.children] + \
+            [n for n in self.children if n not in STOP_ORDER]
+        for name in order:
+            interrupt(self.children[name].popen, timeout)
+        for c in self.children.values():
+            if c.thread is not None:
+                c.thread.join(2)
+        if self.params_file:
+            Path(self.params_file).unlink(missing_ok=True)
+        return {n: c.popen.returncode for n, c in self.children.items()}
+
+
+# --- supervision over ROS ------------------------------------------------------------------
+class Supervisor:
+    """An rclpy node in the launcher: runs the teach sequence, watches the servo's state and,
+    if asked, collects the time histories for the figures."""
+
+    def __init__(self, config: dict, collect: bool = False):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticStatus
+        from geometry_msgs.msg import PoseStamped, TwistStamped
+        from sensor_msgs.msg import JointState
+
+        self.rclpy = rclpy
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node('launcher', context=self.ctx)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.config = config
+        self.state, self.state_values = None, {}
+        self.poses: list = []          # (stamp, oMc 4×4)
+        self.measurements: list = []   # (stamp, {name: value})
+        self.features: list = []       # (stamp, s, s*)
+        self.twists: list = []         # (stamp, v (6,))
+        self.collect = collect
+        self.last_pose = None
+        self.last_meas_stamp = -1.0
+        fset = node_params(config, 'servo').get('feature_set', 's_n')
+        sub = self.node.create_subscription
+        sub(DiagnosticStatus, 'servo/state', self._on_state, 10)
+        sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, 10)
+        sub(JointState, 'detector/measurement', self._on_meas, 10)
+        if collect:
+            sub(JointState, f'features/{fset}', self._on_features, 10)
+            sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, 10)
+
+    @staticmethod
+    def _t(stamp) -> float:
+        return stamp.sec + stamp.nanosec * 1e-9
+
+    def _on_state(self, msg) -> None:
+        self.state = msg.message
+        self.state_values = {kv.key: kv.value for kv in msg.values}
+
+    def _on_pose(self, msg) -> None:
+        from sphere_servo.nodes.conversions import se3_from_pose
+        self.last_pose = (self._t(msg.header.stamp), se3_from_pose(msg.pose))
+        if self.collect:
+            self.poses.append((self.last_pose[0], self.last_pose[1].homogeneous.copy()))
+
+    def _on_meas(self, msg) -> None:
+        t = self._t(msg.header.stamp)
+        self.last_meas_stamp = max(self.last_meas_stamp, t)
+        if self.collect:
+            self.measurements.append((t, dict(zip(msg.name, msg.position))))
+
+    def _on_features(self, msg) -> None:
+        if msg.name:
+            self.features.append((self._t(msg.header.stamp), np.array(msg.position),
+                                  np.array(msg.velocity)))
+
+    def _on_twist(self, msg) -> None:
+        tw = msg.twist
+        self.twists.append((self._t(msg.header.stamp), np.array(
+            [tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y,
+             tw.angular.z])))
+
+    def spin(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+
+    def wait(self, pred, timeout: float, alive=lambda: True) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return True
+            if not alive():
+                return False
+            self.executor.spin_once(timeout_sec=0.02)
+        return bool(pred())
+
+    def call(self, service: str, timeout: float = 30.0):
+        """Call a std_srvs/Trigger service; returns the response (or raises LaunchError)."""
+        from std_srvs.srv import Trigger
+        cli = self.node.create_client(Trigger, service)
+        try:
+            if not self.wait(cli.service_is_ready, timeout):
+                raise LaunchError(f'service {service} not available after {timeout} s')
+            fut = cli.call_async(Trigger.Request())
+            if not self.wait(fut.done, timeout):
+                raise LaunchError(f'service {service} did not answer in {timeout} s')
+            return fut.result()
+        finally:
+            self.node.destroy_client(cli)
+
+    def teach(self, log, alive) -> None:
+        """Arm to the desired pose → teach its image → arm to the start pose."""
+        from sphere_servo.sim.arm import pose_from_xyz_rpy
+        cMo_d = pose_from_xyz_rpy(*np.split(np.asarray(
+            node_params(self.config, 'arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
+            float), 2))
+        res = self.call('/arm_sim/go_desired')
+        if not res.success:
+            raise LaunchError(f'go_desired failed: {res.message}')
+        log(f'arm at the desired pose: {res.message}')
+
+        def at_desired():
+            if self.last_pose is None:
+                return False
+            err = (cMo_d * self.last_pose[1]).translation  # cMo_d · oMc ≈ identity
+            return float(np.linalg.norm(err)) < 1e-3
+        if not self.wait(at_desired, 30.0, alive):
+            raise LaunchError('the arm did not reach the desired pose')
+        t_desired = self.last_pose[0]
+        if not self.wait(lambda: self.last_meas_stamp >= t_desired, 30.0, alive):
+            raise LaunchError('no measurement of the desired image')
+        for _ in range(20):
+            res = self.call('/features/teach')
+            if res.success and _stamp_in(res.message) >= t_desired - 1e-9:
+                break
+            self.spin(0.1)
+        else:
+            raise LaunchError(f'teach failed: {res.message}')
+        log(res.message)
+        res = self.call('/arm_sim/go_start')
+        if not res.success:
+            raise LaunchError(f'go_start failed: {res.message}')
+        log(f'arm at the start pose: {res.message}')
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.ctx)
+
+
+def _stamp_in(message: str) -> float:
+    """The stamp 'sec.nanosec' at the end of the features node's teach reply."""
+    try:
+        return float(message.rsplit(' ', 1)[-1])
+    except ValueError:
+        return -1.0
+
+
+def run(config: dict, until_converged: bool = False, timeout: float | None = None,
+        record: str | None = None, collect: bool = False, out=sys.stdout,
+        progress_every: float = 1.0):
+    """Start the pipeline, teach, servo. Returns ``(exit_code, supervisor_data, exit_codes)``
+    where ``supervisor_data`` is the :class:`Supervisor` (closed) when ``collect``."""
+    def log(msg):
+        out.write(f'[launcher] {msg}\n')
+        out.flush()
+    launch = config.get('launch') or {}
+    timeout = float(timeout if timeout is not None else launch.get('timeout', 120.0))
+    launcher = Launcher(config, out=out)
+    extra = {}
+    if record:
+        topics = launch.get('record_topics', [
+            'camera/image_raw', 'camera/camera_info', 'detector/measurement',
+            'features/s_n', 'camera/cmd_vel', 'camera/cmd_vel_stamped', 'servo/state',
+            'ground_truth/camera_pose', 'joint_states', 'arm_sim/status'])
+        extra['record'] = ['--output', record, '--topics', *topics]
+    sup = None
+    code = 0
+    interrupted = False
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt
+    old_term = signal.signal(signal.SIGTERM, on_term)
+    try:
+        launcher.start(extra)
+        sup = Supervisor(config, collect=collect)
+        alive = lambda: not launcher.dead()  # noqa: E731
+        if launch.get('teach', True):
+            try:
+                sup.teach(log, alive)
+            except LaunchError as exc:
+                log(f'teach sequence failed: {exc}')
+                code = 4 if not launcher.dead() else 3
+                return code, sup, launcher.stop()
+        t0 = time.monotonic()
+        last_print = 0.0
+        while True:
+            sup.spin(0.05)
+            if launcher.dead():
+                log(f'node(s) exited: {", ".join(launcher.dead())}')
+                code = 3
+                break
+            now = time.monotonic()
+            if now - last_print >= progress_every:
+                last_print = now
+                v = sup.state_values
+                log(f"servo {sup.state}: iteration {v.get('iteration', '?')}, "
+                    f"‖s − s*‖ = {v.get('error_norm', '?')}")
+            if until_converged and sup.state == 'converged':
+                log(f"converged after {sup.state_values.get('iteration')} iterations")
+                break
+            if until_converged and now - t0 > timeout:
+                log(f'not converged within {timeout} s')
+                code = 1
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+        log('interrupted: stopping the nodes')
+    except LaunchError as exc:
+        log(str(exc))
+        code = 3
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+        if sup is not None:
+            sup.spin(0.2)
+            sup.close()
+        codes = launcher.stop()
+        bad = {n: c for n, c in codes.items() if c not in (0, None)}
+        if bad:
+            log(f'exit codes: {bad}')
+    if interrupted:
+        code = 130 if until_converged else 0
+    return code, sup, codes
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description='start the sphere_servo pipeline from a config')
+    ap.add_argument('--config', default='special_sphere', help='config path or name')
+    ap.add_argument('--until-converged', action='store_true',
+                    help='exit 0 when the servo converges, non-zero on failure/timeout')
+    ap.add_argument('--timeout', type=float, default=None, help='wall seconds (default: '
+                    'launch.timeout of the config, or 120)')
+    ap.add_argument('--record', metavar='DIR', help='record a rosbag2 into DIR')
+    args = ap.parse_args(argv)
+    try:
+        config = load_config(find_config(args.config))
+    except LaunchError as exc:
+        print(f'launcher: {exc}', file=sys.stderr)
+        return 2
+    code, _, _ = run(config, args.until_converged, args.timeout, args.record)
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
