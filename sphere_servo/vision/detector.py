@@ -330,12 +330,21 @@ class Detector:
         C = fit_conic(free)
         if ellipse_params(C) is None:
             return 'blob is not elliptical'
-        d = sampson_distance(C, free)
-        keep = np.abs(d) < max(2.0, 3.0 * np.median(np.abs(d)) * 1.4826)
-        if keep.sum() < 0.6 * len(free):
-            return 'blob is not elliptical'
-        free = free[keep]
-        C = fit_conic(free)
+        # coarse robust fit: something bright touching the sphere (clutter, the CC stick)
+        # adds a lump to the outer contour; drop the worst points until the fit is tight
+        n0 = len(free)
+        for _ in range(6):
+            d = np.abs(sampson_distance(C, free))
+            tol = max(1.5, 2.5 * 1.4826 * np.median(d))
+            keep = d < tol
+            if keep.all():
+                break
+            if keep.sum() < max(12, 0.3 * n0):
+                return 'blob is not elliptical'
+            free = free[keep]
+            C = fit_conic(free)
+            if ellipse_params(C) is None:
+                return 'blob is not elliptical'
         # normals (outward) from the coarse conic's gradient
         X = np.column_stack([free, np.ones(len(free))])
         g = (X @ C)[:, :2]
