@@ -295,3 +295,38 @@ def test_bagio_errors_without_ros(tmp_path):
                             'count': 2, 'qos': []}]
     with pytest.raises(bagio.BagError, match='exists already'):
         bagio.check_new_output(tmp_path / 'good')
+
+
+def test_older_bag_format_and_its_qos(tmp_path):
+    """A version-8 bag (QoS stored as a YAML string, as Humble/Iron's ros2 bag writes it) is
+    read, and replay offers the recorded publisher's QoS."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability)
+
+    from sphere_servo.tools.replay import publisher_qos
+    inf = bagio.qos_time(bagio.INFINITE_NS)
+    qos = Qos(QosHistory.KEEP_LAST, 1, QosReliability.BEST_EFFORT,
+              QosDurability.TRANSIENT_LOCAL, inf, inf, QosLiveliness.AUTOMATIC, inf, False)
+    with Writer(tmp_path / 'v8', version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection('/camera/camera_info', 'sensor_msgs/msg/CameraInfo',
+                                typestore=TS, offered_qos_profiles=[qos])
+        msg = TS.types['sensor_msgs/msg/CameraInfo'](
+            header=TS.types['std_msgs/msg/Header'](
+                stamp=TS.types['builtin_interfaces/msg/Time'](sec=1, nanosec=2), frame_id='c'),
+            height=H, width=W, distortion_model='plumb_bob', d=np.zeros(5), k=np.eye(3).ravel(),
+            r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0, binning_y=0,
+            roi=TS.types['sensor_msgs/msg/RegionOfInterest'](
+                x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+        w.write(conn, 5, TS.serialize_cdr(msg, 'sensor_msgs/msg/CameraInfo'))
+    meta = yaml.safe_load((tmp_path / 'v8' / 'metadata.yaml').read_text())
+    assert isinstance(meta['rosbag2_bagfile_information']['topics_with_message_count'][0][
+        'topic_metadata']['offered_qos_profiles'], str)
+    with bagio.bag(tmp_path / 'v8') as reader:
+        s = bagio.summary(reader)
+        (conn,) = bagio.select_connections(reader, ['camera/camera_info'])
+        p = publisher_qos(conn)
+        assert len(list(bagio.iter_raw(reader))) == 1
+    assert s['version'] == 8 and s['topics'][0]['qos'][0]['durability'] == 'transient_local'
+    assert s['topics'][0]['qos'][0]['deadline'] == {'sec': 9223372036, 'nsec': 854775807}
+    assert p.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert p.durability == DurabilityPolicy.TRANSIENT_LOCAL
