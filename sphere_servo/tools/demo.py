@@ -1,9 +1,15 @@
-"""``make demo``: the paper's special-sphere scenario (§IV.A.1), then the CC-target
-comparison of the three sets (§IV.A.2), run in the headless kinematic loop.
+"""``make demo``: the paper's special-sphere scenario (§IV.A.1) on the simulated UR5, over
+ROS 2 — four processes (arm_sim, detector, features, servo) started by the launcher, in
+lockstep. The arm shows the desired pose, its image is taught, the arm jumps to the start
+pose and the servo brings it back with ``s_n``, with only the image in the loop.
 
-Prints progress (iteration, ‖s − s*‖) as it goes and writes Fig. 3 / Fig. 4 analogues into
-``runs/<timestamp>/``; ends by printing where the files are. Exit code 0 only if every run
-converged.
+Prints progress (iteration, ‖s − s*‖) as it goes and writes into ``runs/<timestamp>/``:
+Fig. 3 (s_n error, camera velocities), Fig. 4 (camera trajectory from the ground truth,
+image trajectories of b, P1, P2 from the detector) and the run's rosbag2 (``bag/``). Ends by
+printing where the files are. Exit code 0 only if the servo converged.
+
+``--headless`` runs the kinematic loop instead (no ROS): the special sphere with s_n and the
+CC target with s_cc, s_n and s.
 """
 from __future__ import annotations
 
@@ -13,13 +19,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 
-from ..core.loop import run_loop
 from ..core.features import make_feature_set
+from ..core.loop import run_loop
 from ..core.measurement import observe
 from ..core.scenarios import CMO_DESIRED, CMO_FAR_START
 from ..core.targets import cc_target, special_sphere
-from .plots import fig3, fig4
+from ..nodes.vectors import FEATURE_NAMES
+from . import launcher
+from .plots import Trajectory, fig3, fig4
+
 
 def progress(res, every: int = 25) -> None:
     norms = np.linalg.norm(res.e, axis=1)
@@ -32,18 +42,11 @@ def progress(res, every: int = 25) -> None:
           f'(straight {res.straight_distance:.3f} m)')
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--out', default='runs', help='parent folder of the run folder')
-    ap.add_argument('--gain', type=float, default=0.5, help='λ (1/s)')
-    ap.add_argument('--dt', type=float, default=0.1, help='control period (s)')
-    args = ap.parse_args(argv)
-    out = Path(args.out) / time.strftime('%Y%m%d-%H%M%S')
-    out.mkdir(parents=True, exist_ok=True)
+def headless(out: Path, gain: float, dt: float) -> tuple[bool, list]:
     ok = True
     print('§IV.A.1 special sphere, s_n (headless kinematic loop)')
     sp = special_sphere()
-    res = run_loop(sp, CMO_FAR_START, CMO_DESIRED, 's_n', gain=args.gain, dt=args.dt)
+    res = run_loop(sp, CMO_FAR_START, CMO_DESIRED, 's_n', gain=gain, dt=dt)
     progress(res)
     ok &= res.converged
     labels = make_feature_set('s_n', observe(CMO_DESIRED, sp)).labels
@@ -51,17 +54,76 @@ def main(argv=None) -> int:
                   'Special sphere, s_n'),
              fig4({'s_n': res}, out / 'fig4_special_sn.png', 'Special sphere, s_n')]
     print('§IV.A.2 CC target: s_cc, s_n, s')
-    cc = cc_target()
     runs = {}
     for name in ('s_cc', 's_n', 's'):
-        runs[name] = run_loop(cc, CMO_FAR_START, CMO_DESIRED, name, gain=args.gain, dt=args.dt)
+        runs[name] = run_loop(cc_target(), CMO_FAR_START, CMO_DESIRED, name, gain=gain, dt=dt)
         progress(runs[name])
         ok &= runs[name].converged
     files.append(fig4(runs, out / 'fig4_cc_compare.png', 'CC target: s_cc, s_n, s'))
+    return ok, files
+
+
+def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Path]:
+    """Fig. 3 and Fig. 4 from what the launcher's supervisor collected."""
+    files = []
+    if sup.features and sup.twists:
+        t0 = sup.features[0][0]
+        t = np.array([f[0] for f in sup.features]) - t0
+        e = np.array([f[1] - f[2] for f in sup.features])
+        tw = dict(sup.twists)  # twist by image stamp
+        v = np.array([tw.get(f[0], np.zeros(6)) for f in sup.features])
+        files.append(fig3(t, e, v, FEATURE_NAMES[feature_set], out / 'fig3.png', title))
+    if sup.poses and sup.measurements:
+        t_start = sup.features[0][0] if sup.features else sup.poses[0][0]
+        poses = [(t, M) for t, M in sup.poses if t >= t_start]
+        meas = [(t, m) for t, m in sup.measurements if t >= t_start and 'b_x' in m]
+        oMcd = pin.SE3(poses[-1][1])  # the converged pose stands for the desired one
+        cdMo = oMcd.inverse()
+        pts = np.array([cdMo.act(pin.SE3(M).translation) for _, M in poses])
+        b = np.array([[m['b_x'], m['b_y'], m['b_z']] for _, m in meas])
+        marks = {}
+        for name in ('P1', 'P2', 'P3'):
+            rows = [[m[f'{name}_qx'], m[f'{name}_qy'], m[f'{name}_qz']] for _, m in meas
+                    if f'{name}_qx' in m]
+            if rows:
+                marks[name] = np.array(rows)
+        files.append(fig4({feature_set: Trajectory(pts, b, marks)}, out / 'fig4.png', title))
+    return files
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--out', default='runs', help='parent folder of the run folder')
+    ap.add_argument('--config', default='special_sphere', help='launcher config')
+    ap.add_argument('--timeout', type=float, default=None, help='wall seconds')
+    ap.add_argument('--no-record', action='store_true', help='do not record a rosbag2')
+    ap.add_argument('--headless', action='store_true', help='kinematic loop, no ROS')
+    ap.add_argument('--gain', type=float, default=0.5, help='λ (headless)')
+    ap.add_argument('--dt', type=float, default=0.1, help='control period (headless)')
+    args = ap.parse_args(argv)
+    out = (Path(args.out) / time.strftime('%Y%m%d-%H%M%S')).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    if args.headless:
+        ok, files = headless(out, args.gain, args.dt)
+    else:
+        try:
+            config = launcher.load_config(launcher.find_config(args.config))
+        except launcher.LaunchError as exc:
+            print(f'demo: {exc}', file=sys.stderr)
+            return 2
+        print(f'demo: {args.config} over ROS 2 (arm_sim, detector, features, servo)')
+        bag = None if args.no_record else str(out / 'bag')
+        code, sup, _ = launcher.run(config, until_converged=True, timeout=args.timeout,
+                                    record=bag, collect=True)
+        ok = code == 0
+        fset = launcher.node_params(config, 'servo').get('feature_set', 's_n')
+        files = ros_figures(sup, out, f'{args.config}: {fset} over ROS 2', fset)
+        if bag and Path(bag).exists():
+            files.append(Path(bag))
     print('\nwrote:')
     for f in files:
         print(f'  {f}')
-    print('all runs converged' if ok else 'SOME RUNS DID NOT CONVERGE')
+    print('converged' if ok else 'DID NOT CONVERGE')
     return 0 if ok else 1
 
 

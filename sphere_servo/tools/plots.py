@@ -7,6 +7,7 @@ headless Agg backend). Pure: no ROS.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -58,26 +59,44 @@ def _image_xy(u: np.ndarray) -> np.ndarray:
     return u[:, :2] / u[:, 2:3]
 
 
-def fig4(runs: dict[str, LoopResult], path: str | Path, title: str = '') -> Path:
+@dataclass
+class Trajectory:
+    """What Fig. 4 draws for one run: camera centre (N, 3) in the *desired camera frame*, and
+    unit vectors (camera frame) of b and of the marks, by name."""
+
+    positions: np.ndarray
+    b: np.ndarray
+    marks: dict
+
+
+def trajectory_from_loop(res: LoopResult) -> Trajectory:
+    """:class:`Trajectory` of a headless :class:`LoopResult`."""
+    cdMo = np.linalg.inv(res.oMc_desired)
+    pts = np.einsum('ij,nj->ni', cdMo[:3, :3], res.positions) + cdMo[:3, 3]
+    return Trajectory(pts, res.b, res.q)
+
+
+def fig4(runs: dict, path: str | Path, title: str = '') -> Path:
     """Paper Fig. 4: (a) camera trajectory (m) in the desired camera frame, (b) image
-    trajectory of b, (c) of P1, (d) of the second mark (P2 or P3), for each run."""
+    trajectory of b, (c) of P1, (d) of the second mark (P2 or P3), for each run
+    (name → :class:`Trajectory` or :class:`LoopResult`)."""
     fig = plt.figure(figsize=(13, 4))
     ax = fig.add_subplot(1, 4, 1, projection='3d')
     axes = [fig.add_subplot(1, 4, k) for k in (2, 3, 4)]
     second = None
-    for name, res in runs.items():
-        cdMo = np.linalg.inv(res.oMc_desired)
-        pts = np.einsum('ij,nj->ni', cdMo[:3, :3], res.positions) + cdMo[:3, 3]
+    for name, run in runs.items():
+        tr = trajectory_from_loop(run) if isinstance(run, LoopResult) else run
+        pts = tr.positions
         ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], label=name)
         ax.scatter(*pts[0], marker='o', s=15)
         ax.scatter(*pts[-1], marker='x', s=25)
-        axes[0].plot(*_image_xy(res.b).T, label=name)
-        marks = list(res.q)
+        axes[0].plot(*_image_xy(tr.b).T, label=name)
+        marks = sorted(tr.marks)
         if marks:
-            axes[1].plot(*_image_xy(res.q[marks[0]]).T, label=name)
+            axes[1].plot(*_image_xy(tr.marks[marks[0]]).T, label=name)
         if len(marks) > 1:
             second = marks[1]
-            axes[2].plot(*_image_xy(res.q[marks[1]]).T, label=name)
+            axes[2].plot(*_image_xy(tr.marks[marks[1]]).T, label=name)
     ax.set_xlabel('x (m)')
     ax.set_ylabel('y (m)')
     ax.set_zlabel('z (m)')
