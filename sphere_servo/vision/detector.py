@@ -155,10 +155,9 @@ def fit_conic(xy: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     x = (xy[:, 0] - m[0]) * sc
     y = (xy[:, 1] - m[1]) * sc
     D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
-    if weights is not None:
-        D = D * np.sqrt(weights)[:, None]
-    _, _, Vt = np.linalg.svd(D, full_matrices=False)
-    a, b, c, d, e, f = Vt[-1]
+    Dw = D if weights is None else D * weights[:, None]
+    _, V = np.linalg.eigh(Dw.T @ D)           # smallest eigenvector of the scatter matrix
+    a, b, c, d, e, f = V[:, 0]
     Cn = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
     T = np.array([[sc, 0, -sc * m[0]], [0, sc, -sc * m[1]], [0, 0, 1.0]])
     C = T.T @ Cn @ T
@@ -216,7 +215,7 @@ class Detector:
     def __init__(self, colors: dict | None = None, surface_marks=('P1', 'P2'), *,
                  min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
-                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 720):
+                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 300):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
             raise ValueError("colors must contain 'body'")
@@ -265,14 +264,13 @@ class Detector:
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
                        reverse=True)[:6]
-        Vf = V.astype(np.float32)
         reason = 'no bright blob in the image'
         for cnt in cands:
             area = cv2.contourArea(cnt)
             if area < self.min_area_px:
                 reason = f'largest blob too small ({area:.0f} px < {self.min_area_px:.0f})'
                 break
-            res = self._fit_blob(cnt.reshape(-1, 2), Vf, rgb, W, H)
+            res = self._fit_blob(cnt.reshape(-1, 2), V, rgb, W, H)
             if isinstance(res, str):
                 reason = res
                 continue
@@ -315,7 +313,7 @@ class Detector:
             raise ValueError(f'image has zero size: shape {img.shape}')
         return np.ascontiguousarray(img)
 
-    def _fit_blob(self, pts: np.ndarray, Vf: np.ndarray, rgb, W: int, H: int):
+    def _fit_blob(self, pts: np.ndarray, V: np.ndarray, rgb, W: int, H: int):
         """Sub-pixel ellipse of one outer contour ((N, 2) int pixels). Returns
         ``(C_px, rms_px, n_points, cut_by_border)`` or a reason string."""
         on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= W - 1) | (pts[:, 1] <= 0)
@@ -355,8 +353,13 @@ class Detector:
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         K = self.K
         offs = np.arange(-K, K + 1, dtype=np.float64)
-        mx = (free[:, 0:1] + offs[None, :] * n[:, 0:1]).astype(np.float32)
-        my = (free[:, 1:2] + offs[None, :] * n[:, 1:2]).astype(np.float32)
+        # profiles sampled (bilinear) in a float copy of the blob's box only
+        x0, y0 = max(0, int(free[:, 0].min()) - K - 2), max(0, int(free[:, 1].min()) - K - 2)
+        x1 = min(W, int(free[:, 0].max()) + K + 3)
+        y1 = min(H, int(free[:, 1].max()) + K + 3)
+        Vf = V[y0:y1, x0:x1].astype(np.float32)
+        mx = (free[:, 0:1] - x0 + offs[None, :] * n[:, 0:1]).astype(np.float32)
+        my = (free[:, 1:2] - y0 + offs[None, :] * n[:, 1:2]).astype(np.float32)
         prof = cv2.remap(Vf, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         i_out = prof[:, -2:].mean(axis=1)
         # the body's shade changes quickly near the limb (its normal turns away): take the
@@ -380,7 +383,7 @@ class Detector:
         if len(edge) < 10:
             return 'too few clean edge points'
         C = fit_conic(edge)
-        for _ in range(3):
+        for _ in range(2):
             d = sampson_distance(C, edge)
             sigma = 1.4826 * np.median(np.abs(d - np.median(d)))
             keep = np.abs(d) < max(3.0 * sigma, 0.3)
@@ -420,14 +423,22 @@ class Detector:
         px, py, u0, v0 = intr
         H, W = V.shape
         c, ax, _ = ep
-        rad = 1.7 * float(np.max(ax)) + 3      # the CC tip can lie outside the disc
+        # the CC tip can lie outside the disc; surface marks cannot
+        off_surface = any(n not in self.surface_marks for n in self.mark_names)
+        rad = (1.7 if off_surface else 1.0) * float(np.max(ax)) + 3
         x0, x1 = max(0, int(c[0] - rad)), min(W, int(c[0] + rad) + 1)
         y0, y1 = max(0, int(c[1] - rad)), min(H, int(c[1] + rad) + 1)
         if x0 >= x1 or y0 >= y1:
             return marks
         roi = rgb[y0:y1, x0:x1]
-        hsv = cv2.cvtColor(np.ascontiguousarray(roi), cv2.COLOR_RGB2HSV)
-        cand = cv2.inRange(hsv, (0, 70, int(0.75 * thr)), (180, 255, 255))
+        # saturated (max − min ≥ 0.27 max) and bright enough (not the dark background)
+        c0, c1, c2 = roi[..., 0], roi[..., 1], roi[..., 2]
+        vmax = V[y0:y1, x0:x1]
+        vmin = cv2.min(cv2.min(np.ascontiguousarray(c0), np.ascontiguousarray(c1)),
+                       np.ascontiguousarray(c2))
+        sat = cv2.subtract(vmax, vmin)
+        cand = (sat.astype(np.uint16) * 100 >= 27 * vmax.astype(np.uint16)) \
+            & (vmax >= 0.75 * thr)
         cy, cx = np.nonzero(cand)
         if cy.size == 0:
             return marks
