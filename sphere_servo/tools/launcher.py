@@ -220,6 +220,7 @@ class Supervisor:
         self.collect = collect
         self.last_pose = None
         self.last_meas_stamp = -1.0
+        self.t_start = 0.0  # stamp of the first image at the start pose
         fset = node_params(config, 'servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
         sub(DiagnosticStatus, 'servo/state', self._on_state, 10)
@@ -308,20 +309,32 @@ class Supervisor:
         if not self.wait(at_desired, 30.0, alive):
             raise LaunchError('the arm did not reach the desired pose')
         t_desired = self.last_pose[0]
-        if not self.wait(lambda: self.last_meas_stamp >= t_desired, 30.0, alive):
-            raise LaunchError('no measurement of the desired image')
-        for _ in range(20):
+        end = time.monotonic() + 30.0
+        while True:  # teach the first measurement taken at the desired pose
             res = self.call('/features/teach')
             if res.success and _stamp_in(res.message) >= t_desired - 1e-9:
                 break
-            self.spin(0.1)
-        else:
-            raise LaunchError(f'teach failed: {res.message}')
+            if time.monotonic() > end or not alive():
+                raise LaunchError(f'teach failed: {res.message} (desired pose at '
+                                  f'{t_desired:.6f} s, last measurement '
+                                  f'{self.last_meas_stamp:.6f} s)')
+            self.spin(0.2)
         log(res.message)
         res = self.call('/arm_sim/go_start')
         if not res.success:
             raise LaunchError(f'go_start failed: {res.message}')
+        if not self.wait(lambda: not at_desired(), 30.0, alive):
+            raise LaunchError('the arm did not leave the desired pose')
+        self.t_start = self.last_pose[0]
         log(f'arm at the start pose: {res.message}')
+
+    def converged(self) -> bool:
+        """The servo reports convergence on an image taken after the jump to the start."""
+        try:
+            stamp = float(self.state_values.get('stamp', '-1'))
+        except ValueError:
+            return False
+        return self.state == 'converged' and stamp >= self.t_start
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -387,7 +400,7 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
                 v = sup.state_values
                 log(f"servo {sup.state}: iteration {v.get('iteration', '?')}, "
                     f"‖s − s*‖ = {v.get('error_norm', '?')}")
-            if until_converged and sup.state == 'converged':
+            if until_converged and sup.converged():
                 log(f"converged after {sup.state_values.get('iteration')} iterations")
                 break
             if until_converged and now - t0 > timeout:
