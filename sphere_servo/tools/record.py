@@ -23,9 +23,11 @@ from datetime import datetime
 
 from sphere_servo.tools.bagio import BagError, check_new_output, qos_time, topic_name, typestore
 
-DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'camera/cmd_vel', 'joint_states',
-                  'features', 'features/desired', 'features/error', 'servo/status',
-                  'arm_sim/status']
+# the pipeline's topics (module docstrings of nodes/arm_sim, detector, features, servo):
+# enough to regenerate the features offline (``refeatures``) and to compare with what ran
+DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measurement',
+                  'features/s_n', 'camera/cmd_vel', 'camera/cmd_vel_stamped', 'servo/state',
+                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/status']
 # never recorded by --all (as ros2 bag record --all)
 EXCLUDED = {'/rosout', '/parameter_events'}
 
