@@ -12,10 +12,12 @@ which is not on PyPI).
 """
 from __future__ import annotations
 
+import fcntl
 import itertools
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -27,10 +29,24 @@ REPO = Path(__file__).resolve().parents[1]
 _domain_counter = itertools.count()
 
 
-def _next_domain_id() -> int:
-    # ROS_DOMAIN_ID must be ≤ 101 for the default port mapping on Linux; spread parallel
-    # pytest runs by pid so they do not hear each other.
-    return 1 + (os.getpid() * 7 + next(_domain_counter)) % 100
+LOCK_DIR = Path(tempfile.gettempdir()) / 'sphere_servo_ros_domains'
+
+
+def _acquire_domain_id():
+    """A ROS_DOMAIN_ID (1..100, within the default port mapping on Linux) that no other test
+    on this machine holds: an exclusive lock file per domain, held until released, so
+    concurrent pytest runs never hear each other. Returns (domain_id, lock file object)."""
+    LOCK_DIR.mkdir(exist_ok=True)
+    start = (os.getpid() * 7 + next(_domain_counter)) % 100
+    for k in range(100):
+        domain = 1 + (start + k) % 100
+        fh = open(LOCK_DIR / f'{domain}.lock', 'w')
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return domain, fh
+        except OSError:
+            fh.close()
+    raise RuntimeError('all ROS domain ids 1..100 are taken by other tests')
 
 
 @pytest.fixture(scope='session')
@@ -70,14 +86,17 @@ def executable_path(env: dict, name: str) -> str:
 
 
 @pytest.fixture
-def ros_env(install_space) -> dict:
-    """Environment for this test's processes: own domain, localhost discovery."""
+def ros_env(install_space):
+    """Environment for this test's processes: a domain no other test holds, localhost
+    discovery."""
+    domain, lock = _acquire_domain_id()
     env = dict(install_space)
-    env['ROS_DOMAIN_ID'] = str(_next_domain_id())
+    env['ROS_DOMAIN_ID'] = str(domain)
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     env['PYTHONUNBUFFERED'] = '1'
     env.pop('ROS_LOCALHOST_ONLY', None)
-    return env
+    yield env
+    lock.close()
 
 
 class Proc:

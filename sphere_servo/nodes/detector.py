@@ -18,6 +18,8 @@ the paper's calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``.
 """
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 from rclpy.node import Node
@@ -70,6 +72,14 @@ class DetectorNode(Node):
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, 10)
         self.frames = 0
+        self._last_error = ('', 0.0)
+
+    def _error(self, text: str) -> None:
+        """Log an error; a repeat of the same text is logged at most once a second."""
+        now = time.monotonic()
+        if text != self._last_error[0] or now - self._last_error[1] > 1.0:
+            self.get_logger().error(text)
+            self._last_error = (text, now)
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
@@ -85,15 +95,15 @@ class DetectorNode(Node):
         self.frames += 1
         det = None
         try:
+            img = image_from_buffer(msg.height, msg.width, msg.step, msg.encoding, msg.data)
             if self.camera is None:
                 raise ValueError('no valid camera_info received yet')
-            img = image_from_buffer(msg.height, msg.width, msg.step, msg.encoding, msg.data)
             det = self.detector.detect(img, msg.encoding, self.camera)
             if not det.found:
                 self.get_logger().warn(f'sphere not detected: {det.reason}',
                                        throttle_duration_sec=2.0)
         except ValueError as exc:
-            self.get_logger().error(f'image rejected: {exc}', throttle_duration_sec=1.0)
+            self._error(f'image rejected: {exc}')
         self.pub.publish(measurement_msg(det, msg.header))
         if self.p['publish_overlay'] and det is not None:
             rgb = img if msg.encoding == 'rgb8' else (

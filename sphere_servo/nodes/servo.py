@@ -6,11 +6,17 @@ Publishes
     ``camera/cmd_vel``          geometry_msgs/Twist         (v, ω) in the camera optical frame
     ``camera/cmd_vel_stamped``  geometry_msgs/TwistStamped  the same, header = the image's
     ``servo/state``             diagnostic_msgs/DiagnosticStatus  message one of
-                                ``waiting | servoing | converged | target lost | stale``;
+                                ``waiting | disabled | servoing | converged | target lost |
+                                stale``;
                                 values: error_norm, converged, target_lost, iteration, gain,
                                 saturated, stamp
 
-Safety: a zero twist is sent when the target or a mark is lost (empty features), when the
+Services
+    ``~/enable``                std_srvs/SetBool  start/stop servoing (with ``start_enabled:
+                                false`` the servo sends zero twists until enabled: the
+                                launcher teaches the desired image meanwhile)
+
+Safety: a zero twist is sent while disabled, when the target or a mark is lost (empty features), when the
 last features are older than ``timeout`` (wall seconds: a dead detector stops the arm even
 when simulated time is frozen), when the law cannot give a finite twist, and on shutdown.
 
@@ -23,8 +29,10 @@ import time
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist, TwistStamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool
 
 from sphere_servo.core.control import (INTERACTION_CHOICES, AdaptiveGain, VectorController)
 from sphere_servo.core.geometry import GeometryError
@@ -57,6 +65,8 @@ PARAMS = {
     'tol': Param(1e-3, 'converged when ‖s − s*‖₂ < tol', range=(1e-12, 10.0), read_only=True),
     'timeout': Param(0.5, 'zero twist when the last features are older than this (wall s)',
                      range=(0.01, 60.0), read_only=True),
+    'start_enabled': Param(True, 'servo at once; false: send zero twists until ~/enable',
+                           read_only=True),
 }
 
 
@@ -77,10 +87,13 @@ class ServoNode(Node):
         self.pub_state = self.create_publisher(DiagnosticStatus, 'servo/state', 10)
         self.create_subscription(JointState, f'features/{self.feature_set}', self._on_features,
                                  10)
+        self.enabled = p['start_enabled']
+        self.create_service(SetBool, '~/enable', self._srv_enable)
         self.last_rx = None  # wall time of the last features
         self.iteration = 0
         self.state = 'waiting'
-        self.create_timer(0.05, self._watchdog)
+        # wall (steady) clock: in lockstep, sim time freezes exactly when the pipeline dies
+        self.create_timer(0.05, self._watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # --- outputs ---------------------------------------------------------------------------
     def _send(self, v_c: np.ndarray, header=None) -> None:
@@ -108,8 +121,19 @@ class ServoNode(Node):
                             reason=reason, converged=False, target_lost=True)
 
     # --- inputs ----------------------------------------------------------------------------
+    def _srv_enable(self, request, response):
+        self.enabled = bool(request.data)
+        response.success = True
+        response.message = 'servo enabled' if self.enabled else 'servo disabled'
+        self.get_logger().info(response.message)
+        return response
+
     def _on_features(self, msg: JointState) -> None:
         self.last_rx = time.monotonic()
+        if not self.enabled:
+            self._send(np.zeros(6), msg.header)
+            return self._publish_state('disabled', DiagnosticStatus.OK, msg.header.stamp,
+                                       converged=False, target_lost=False)
         self.iteration += 1
         try:
             fs = features_from_msg(msg, self.feature_set)

@@ -151,6 +151,7 @@ class Launcher:
 
     config: dict
     out: object = sys.stdout
+    env: dict | None = None  # the children's environment (default: this process's)
     children: dict = field(default_factory=dict)
     params_file: str = ''
 
@@ -168,8 +169,16 @@ class Launcher:
         for name, argv in (extra or {}).items():
             self._spawn(name, node_command(name) + list(argv))
 
+    def restart(self, name: str) -> None:
+        """Start ``name`` again with the same parameters (after it died or was killed)."""
+        old = self.children[name]
+        if old.popen.poll() is None:
+            raise LaunchError(f'{name} is still running')
+        self._spawn(name, node_command(name) + ['--ros-args', '--params-file',
+                                                self.params_file])
+
     def _spawn(self, name: str, cmd: list[str]) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED='1')
+        env = dict(self.env if self.env is not None else os.environ, PYTHONUNBUFFERED='1')
         popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  text=True, env=env, start_new_session=True)
         t = threading.Thread(target=_forward, args=(name, popen.stdout, self.out), daemon=True)
@@ -199,7 +208,7 @@ class Supervisor:
     """An rclpy node in the launcher: runs the teach sequence, watches the servo's state and,
     if asked, collects the time histories for the figures."""
 
-    def __init__(self, config: dict, collect: bool = False):
+    def __init__(self, config: dict, collect: bool = False, domain_id: int | None = None):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticStatus
         from geometry_msgs.msg import PoseStamped, TwistStamped
@@ -207,7 +216,7 @@ class Supervisor:
 
         self.rclpy = rclpy
         self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx)
+        rclpy.init(context=self.ctx, domain_id=domain_id)
         self.node = rclpy.create_node('launcher', context=self.ctx)
         self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
@@ -276,14 +285,17 @@ class Supervisor:
             self.executor.spin_once(timeout_sec=0.02)
         return bool(pred())
 
-    def call(self, service: str, timeout: float = 30.0):
-        """Call a std_srvs/Trigger service; returns the response (or raises LaunchError)."""
-        from std_srvs.srv import Trigger
-        cli = self.node.create_client(Trigger, service)
+    def call(self, service: str, timeout: float = 30.0, enable: bool | None = None):
+        """Call a std_srvs/Trigger service (or SetBool with ``enable``); returns the response
+        (or raises LaunchError)."""
+        from std_srvs.srv import SetBool, Trigger
+        srv = Trigger if enable is None else SetBool
+        cli = self.node.create_client(srv, service)
         try:
             if not self.wait(cli.service_is_ready, timeout):
                 raise LaunchError(f'service {service} not available after {timeout} s')
-            fut = cli.call_async(Trigger.Request())
+            req = srv.Request() if enable is None else SetBool.Request(data=enable)
+            fut = cli.call_async(req)
             if not self.wait(fut.done, timeout):
                 raise LaunchError(f'service {service} did not answer in {timeout} s')
             return fut.result()
@@ -291,7 +303,10 @@ class Supervisor:
             self.node.destroy_client(cli)
 
     def teach(self, log, alive) -> None:
-        """Arm to the desired pose → teach its image → arm to the start pose."""
+        """Arm to the desired pose → teach its image → arm to the start pose → enable the
+        servo. The servo must be disabled meanwhile (``start_enabled: false``): a teach
+        reply can name an image taken before the jump, and a servo acting on it would move
+        the arm away from the pose being taught."""
         from sphere_servo.sim.arm import pose_from_xyz_rpy
         cMo_d = pose_from_xyz_rpy(*np.split(np.asarray(
             node_params(self.config, 'arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
@@ -327,6 +342,13 @@ class Supervisor:
             raise LaunchError('the arm did not leave the desired pose')
         self.t_start = self.last_pose[0]
         log(f'arm at the start pose: {res.message}')
+        self.enable_servo(log)
+
+    def enable_servo(self, log) -> None:
+        res = self.call('/servo/enable', enable=True)
+        if not res.success:
+            raise LaunchError(f'cannot enable the servo: {res.message}')
+        log(res.message)
 
     def converged(self) -> bool:
         """The servo reports convergence on an image taken after the jump to the start."""
@@ -352,15 +374,21 @@ def _stamp_in(message: str) -> float:
 
 def run(config: dict, until_converged: bool = False, timeout: float | None = None,
         record: str | None = None, collect: bool = False, out=sys.stdout,
-        progress_every: float = 1.0):
-    """Start the pipeline, teach, servo. Returns ``(exit_code, supervisor_data, exit_codes)``
-    where ``supervisor_data`` is the :class:`Supervisor` (closed) when ``collect``."""
+        progress_every: float = 1.0, env: dict | None = None):
+    """Start the pipeline, teach, servo. Returns ``(exit_code, supervisor, exit_codes)``;
+    the (closed) :class:`Supervisor` holds the histories when ``collect``. ``env``: the
+    nodes' environment (its ``ROS_DOMAIN_ID`` is also the supervisor's)."""
     def log(msg):
         out.write(f'[launcher] {msg}\n')
         out.flush()
     launch = config.get('launch') or {}
+    if launch.get('teach', True) and node_params(config, 'servo').get('start_enabled', True):
+        log('config error: teach needs the servo disabled until the arm is at the start '
+            'pose; set servo start_enabled: false')
+        return 2, None, {}
     timeout = float(timeout if timeout is not None else launch.get('timeout', 120.0))
-    launcher = Launcher(config, out=out)
+    launcher = Launcher(config, out=out, env=env)
+    domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
     if record:
         topics = launch.get('record_topics', [
@@ -377,7 +405,8 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
     old_term = signal.signal(signal.SIGTERM, on_term)
     try:
         launcher.start(extra)
-        sup = Supervisor(config, collect=collect)
+        sup = Supervisor(config, collect=collect,
+                         domain_id=int(domain) if domain not in (None, '') else None)
         alive = lambda: not launcher.dead()  # noqa: E731
         if launch.get('teach', True):
             try:
@@ -386,6 +415,8 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
                 log(f'teach sequence failed: {exc}')
                 code = 4 if not launcher.dead() else 3
                 return code, sup, launcher.stop()
+        elif not node_params(config, 'servo').get('start_enabled', True):
+            sup.enable_servo(log)
         t0 = time.monotonic()
         last_print = 0.0
         while True:
