@@ -12,7 +12,7 @@ import importlib
 import sys
 import traceback
 
-AREAS = ('core', 'vision', 'arm', 'bag')
+AREAS = ('core', 'vision', 'arm', 'bag', 'loop')
 
 
 def _fmt(x) -> str:

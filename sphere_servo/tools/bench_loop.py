@@ -1,0 +1,174 @@
+"""Benchmark of the ROS pipeline (issue 5): image → twist latency across processes, keeping up
+with a 60 Hz camera, and resident memory per node.
+
+A feeder *process* publishes rendered 640×480 rgb8 images (and camera_info) stamped with the
+wall clock at publish time, at a set rate; ``detector``, ``features`` and ``servo`` run as
+separate processes (``python -m``), and this process listens. Figures:
+
+- pipeline latency: twist arrival − image stamp (image publish → twist, through three
+  processes and four DDS hops), median;
+- baseline, measured beside it: the bare two-process Image latency, image arrival in this
+  process − image stamp, median (the floor of any cross-process image pipeline);
+- 60 Hz: frames the feeder published (by stamp, between the first and last twist) that got
+  no twist;
+- VmRSS of each node process.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+FEEDER = r'''
+import sys, time, rclpy
+from rclpy.node import Node
+from std_msgs.msg import Header
+from sensor_msgs.msg import Image, CameraInfo
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.scenarios import CMO_DESIRED, CMO_FAR_START
+from sphere_servo.core.targets import special_sphere
+from sphere_servo.nodes.conversions import image_from_array, camera_info_from_intrinsics
+from sphere_servo.vision.renderer import Renderer
+rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+rclpy.init()
+node = Node('bench_feeder')
+pi = node.create_publisher(Image, 'camera/image_raw', 10)
+pc = node.create_publisher(CameraInfo, 'camera/camera_info', 10)
+cam = CameraIntrinsics()
+frames = [Renderer(cam, special_sphere()).render(p) for p in (CMO_DESIRED, CMO_FAR_START)]
+# the first 20 frames show the desired pose (the bench teaches one), then the far pose
+time.sleep(3.0)  # discovery
+n, t0 = 0, time.monotonic()
+while time.monotonic() - t0 < seconds:
+    h = Header(stamp=node.get_clock().now().to_msg(), frame_id='camera_optical_frame')
+    pc.publish(camera_info_from_intrinsics(cam, h))
+    pi.publish(image_from_array(frames[0 if n < 20 else 1], h))
+    n += 1
+    rclpy.spin_once(node, timeout_sec=0)
+    time.sleep(max(0.0, t0 + n / rate - time.monotonic()))
+print(f'published {n}', flush=True)
+node.destroy_node()
+rclpy.try_shutdown()
+'''
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float('nan')
+
+
+def _run(rate: float, seconds: float) -> dict:
+    import rclpy
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image
+    from std_srvs.srv import SetBool, Trigger
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(1 + (os.getpid() * 13) % 100),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    extra = {'servo': ['-p', 'start_enabled:=false']}
+    procs = {name: subprocess.Popen([sys.executable, '-m', f'sphere_servo.nodes.{name}',
+                                     '--ros-args', *extra.get(name, [])],
+                                    env=env, stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL)
+             for name in ('detector', 'features', 'servo')}
+    feeder = subprocess.Popen([sys.executable, '-c', FEEDER, str(rate), str(seconds + 1.0)],
+                              env=env, stdout=subprocess.PIPE, text=True)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(env['ROS_DOMAIN_ID']))
+    node = Node('bench_loop', context=ctx)
+    ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    img_lat, tw_lat, tw_stamps = [], [], []
+
+    def now() -> float:
+        return time.time()
+
+    def t_of(h) -> float:
+        return h.stamp.sec + h.stamp.nanosec * 1e-9
+
+    node.create_subscription(Image, 'camera/image_raw',
+                             lambda m: img_lat.append(now() - t_of(m.header)), 10)
+
+    def on_tw(m):
+        tw_stamps.append(t_of(m.header))
+        tw_lat.append(now() - t_of(m.header))
+    node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', on_tw, 100)
+    teach = node.create_client(Trigger, '/features/teach')
+    enable = node.create_client(SetBool, '/servo/enable')
+    rss = {}
+    try:
+        end = time.monotonic() + 30
+        while not (teach.service_is_ready() and enable.service_is_ready()):
+            ex.spin_once(timeout_sec=0.05)
+            if time.monotonic() > end:
+                raise RuntimeError('nodes did not come up')
+        while not img_lat:  # the feeder is publishing the desired frame
+            ex.spin_once(timeout_sec=0.05)
+        t_end = time.monotonic() + 0.2
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.02)
+        for cli, req in ((teach, Trigger.Request()), (enable, SetBool.Request(data=True))):
+            fut = cli.call_async(req)
+            while not fut.done():
+                ex.spin_once(timeout_sec=0.02)
+        img_lat.clear()
+        tw_lat.clear()
+        tw_stamps.clear()
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.01)
+        rss = {name: _rss_mb(p.pid) for name, p in procs.items()}
+        published = feeder.communicate(timeout=30)[0]
+    finally:
+        for p in [*procs.values(), feeder]:
+            if p.poll() is None:
+                p.send_signal(2)
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    st = np.sort(np.array(tw_stamps))
+    # frames the feeder published between the first and the last twist's image
+    expected = int(round((st[-1] - st[0]) * rate)) + 1 if st.size else 0
+    return {'img': np.array(img_lat), 'tw': np.array(tw_lat), 'n_tw': len(set(tw_stamps)),
+            'expected': expected, 'rss': rss, 'feeder': published}
+
+
+def run(quick: bool = False) -> list[dict]:
+    seconds = 5.0 if quick else 15.0
+    r30 = _run(30.0, seconds)
+    base, lat = float(np.median(r30['img']) * 1e3), float(np.median(r30['tw']) * 1e3)
+    rows = [{'name': 'loop: image publish → twist (3 processes), median', 'value': lat,
+             'unit': 'ms', 'baseline': base, 'baseline_name': 'bare 2-process Image latency',
+             'ratio': lat / base, 'target': '≤ 1.5× baseline'},
+            {'name': 'loop: image publish → twist, p95', 'value':
+             float(np.percentile(r30['tw'], 95) * 1e3), 'unit': 'ms', 'baseline':
+             float(np.percentile(r30['img'], 95) * 1e3), 'baseline_name': 'bare Image p95',
+             'ratio': None, 'target': ''}]
+    r60 = _run(60.0, seconds)
+    rows.append({'name': 'loop at 60 Hz: frames without a twist', 'value':
+                 float(r60['expected'] - r60['n_tw']), 'unit': 'frames', 'baseline':
+                 float(r60['expected']), 'baseline_name': 'frames published', 'ratio':
+                 r60['n_tw'] / max(1, r60['expected']), 'target': '0 (ratio 1.0)'})
+    for name, mb in r60['rss'].items():
+        rows.append({'name': f'RSS {name}', 'value': mb, 'unit': 'MiB', 'baseline': None,
+                     'baseline_name': None, 'ratio': None, 'target': 'printed'})
+    return rows
+
+
+if __name__ == '__main__':
+    for row in run(quick='--quick' in sys.argv):
+        print(row)
