@@ -281,3 +281,58 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
                                                              CMO_DESIRED.translation / 0.05)
     assert len(feats[2].name) == 0
     assert proc.stop() == 0
+
+
+def test_colcon_recognises_an_ament_python_package():
+    import subprocess
+    import sys
+    from pathlib import Path
+    colcon = Path(sys.executable).parent / 'colcon'
+    out = subprocess.run([str(colcon), 'list', '--base-paths', str(Path(__file__).parents[1])],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[:1] == ['sphere_servo'] and '(ros.ament_python)' in out.stdout
+
+
+def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
+    node, spin = test_node
+    states = []
+    from diagnostic_msgs.msg import DiagnosticStatus
+    node.create_subscription(DiagnosticStatus, 'servo/state', lambda m: states.append(m), 50)
+    proc = launch('launcher', '--config', 'special_sphere')
+    assert spin(90.0, until=lambda: any(m.message == 'servoing' for m in states)), proc.log()
+    assert proc.stop(timeout=30.0) == 0, proc.log()[-3000:]
+    log = proc.log()
+    assert 'interrupted: stopping the nodes' in log
+    assert 'exit codes:' not in log, log[-2000:]  # every node exited 0
+    assert 'Traceback' not in log
+
+
+def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
+    """desired_source: image — the desired image file is detected with the camera_info
+    intrinsics; the same image's measurement then gives zero error."""
+    import cv2
+    from sphere_servo.nodes.vectors import measurement_msg
+    from sphere_servo.vision.detector import Detector
+    node, spin = test_node
+    cam = CameraIntrinsics()
+    img = Renderer(cam, special_sphere()).render(CMO_DESIRED)
+    path = tmp_path / 'desired.png'
+    cv2.imwrite(str(path), img[..., ::-1])
+    feats = []
+    node.create_subscription(JointState, 'features/s_n', feats.append, 50)
+    pub_info = node.create_publisher(CameraInfo, 'camera/camera_info', 10)
+    pub = node.create_publisher(JointState, 'detector/measurement', 10)
+    proc = launch('features', '--ros-args', '-p', 'desired_source:=image', '-p',
+                  f'desired_image:={path}')
+    assert spin(20.0, until=lambda: pub.get_subscription_count() > 0), proc.log()
+    det = Detector.for_target(special_sphere()).detect(img, 'rgb8', cam)
+    for k in range(50):
+        pub_info.publish(camera_info_from_intrinsics(cam, header(1.0, 'cam')))
+        pub.publish(measurement_msg(det, header(2.0 + k, 'cam')))
+        if spin(0.2, until=lambda: bool(feats)):
+            break
+    assert feats, proc.log()
+    assert np.allclose(feats[-1].effort, 0.0, atol=1e-9)
+    assert 'desired features set' in proc.log()
+    assert proc.stop() == 0
