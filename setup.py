@@ -29,6 +29,7 @@ setup(
             'launcher = sphere_servo.tools.launcher:main',
             'record = sphere_servo.tools.record:main',
             'replay = sphere_servo.tools.replay:main',
+            'refeatures = sphere_servo.tools.refeatures:main',
         ],
     },
 )
