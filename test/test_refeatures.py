@@ -5,7 +5,9 @@ by ``replay`` into the real ``detector`` and ``features`` nodes; both reproduce 
 from __future__ import annotations
 
 import io
+import json
 import re
+import warnings
 import subprocess
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -46,42 +48,65 @@ def lockstep_run(install_space, tmp_path_factory):
     return bag, log, int(sec) * 1_000_000_000 + int(ns)
 
 
-def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
-    bag, log, taught = lockstep_run
-    res = rf.regenerate(bag, rf.load_settings('special_sphere'), servo=True)
-    # the desired is found in the bag: the image the launcher's teach used
-    assert res.desired[-1].frame.stamp == taught, [d.note for d in res.desired]
-    # the detector reproduces every recorded measurement exactly
-    meas = rf.compare_recorded(res, rf.MEAS_TOPIC)
-    assert meas.common > 100 and meas.ok(partial=True), meas
-    # s_n: message for message, same image stamps, same numbers
-    rec = res.recorded['/features/s_n']
-    gen = res.streams['/features/s_n']
-    assert len(gen) == len(rec) > 100
-    assert [rf.stamp_ns(m.header) for _, m in gen] == [rf.stamp_ns(m.header) for _, m in rec]
-    for (_, a), (_, b) in zip(rec, gen):
-        assert list(a.name) == list(b.name)
-        np.testing.assert_allclose(b.position, a.position, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(b.velocity, a.velocity, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(b.effort, a.effort, rtol=0, atol=1e-12)
-    # the open-loop servo: every recorded twist (the servo is stopped before the last
-    # images, so some may be missing) is reproduced
-    tw = rf.compare_recorded(res, rf.TWIST_TOPIC)
-    assert tw.recorded > 100 and tw.matched == tw.recorded and tw.ok(1e-12, partial=True), tw
-    assert tw.regenerated - tw.recorded <= 5, tw
+def _features(bag: Path) -> list:
+    """(image stamp ns, names, s, s*, s − s*) of every features/s_n message of a bag."""
+    with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
+        conns = [c for c in reader.connections if c.topic == '/features/s_n']
+        return [(rf.stamp_ns(m.header), list(m.name), m.position, m.velocity, m.effort)
+                for m in (reader.deserialize(raw, c.msgtype)
+                          for c, _, raw in reader.messages(connections=conns))]
 
-    # the installed command: the same verdict, and a new bag with the regenerated streams
-    out_bag = tmp_path / 'regen'
+
+def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
+    """Offline: the installed ``refeatures`` (the code the live nodes ran) regenerates the
+    run's features/s_n from its images, message for message."""
+    bag, log, taught = lockstep_run
+    out_bag, report = tmp_path / 'regen', tmp_path / 'report.json'
     p = subprocess.run([executable_path(install_space, 'refeatures'), str(bag), '--config',
-                        'special_sphere', '--servo', '--check', '-o', str(out_bag),
-                        '--storage', 'sqlite3'],
+                        'special_sphere', '--servo', '--check', '--json', str(report),
+                        '-o', str(out_bag), '--storage', 'sqlite3'],
                        env=install_space, capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stdout + p.stderr
-    assert re.search(r'/features/s_n\s+(\d+)\s+\1\s+same\s+0\b', p.stdout), p.stdout
+    rep = json.loads(report.read_text())
+    # --check fails only if the recorder lost an image of the run (then its features
+    # cannot be regenerated); everything else is checked below
+    lost = rep['topics']['/features/s_n']['no_image']
+    assert p.returncode == (1 if lost else 0), p.stdout + p.stderr
+    # (in lockstep the recorder is not in the loop: starved of CPU it can fall more than
+    # arm_sim's 10-deep reliable history behind, and lose an image the detector got)
+    assert lost <= max(2, rep['images'] // 50), f'the recorder lost {lost} images\n{p.stdout}'
+
+    # the desired is found in the bag: the image the launcher last taught
+    assert rep['desired'][-1]['taught_stamp_ns'] == taught, rep['desired']
+    topics = rep['topics']
+    # the detector reproduces every recorded measurement whose image is in the bag
+    meas = topics[rf.MEAS_TOPIC]
+    assert meas['matched'] == meas['common'] > 100 and meas['max_diff'] == 0.0, meas
+    # the open-loop servo reproduces every recorded twist (it is stopped before the last
+    # images, so a few regenerated ones have no recorded counterpart)
+    tw = topics[rf.TWIST_TOPIC]
+    assert tw['matched'] == tw['recorded'] - tw['no_image'] > 100, tw
+    assert tw['max_diff'] <= 1e-12, tw
+    assert tw['regenerated'] - tw['recorded'] <= 5, tw
+
+    # s_n, read back from the two bags: same count, same image stamps, same numbers
+    rec, gen = _features(bag), _features(out_bag)
+    if lost:
+        with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
+            conns = [c for c in reader.connections if c.topic == '/camera/image_raw']
+            images = {rf.stamp_ns(reader.deserialize(raw, c.msgtype).header)
+                      for c, _, raw in reader.messages(connections=conns)}
+        rec = [r for r in rec if r[0] in images]
+        warnings.warn(f'the recorder lost {lost} image(s) of the run; compared the '
+                      f'{len(rec)} features of the recorded images')
+    assert len(gen) == len(rec) > 100 and topics['/features/s_n']['regenerated'] == len(gen)
+    for a, b in zip(rec, gen):
+        assert a[0] == b[0] and a[1] == b[1]
+        for x, y in zip(a[2:], b[2:]):
+            np.testing.assert_allclose(y, x, rtol=0, atol=1e-12)
     with AnyReader([out_bag], default_typestore=bagio.typestore()) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
-    assert counts == {rf.MEAS_TOPIC: len(res.frames), '/features/s_n': len(rec),
-                      rf.TWIST_TOPIC: tw.regenerated}
+    assert counts == {rf.MEAS_TOPIC: rep['images'], '/features/s_n': len(rec),
+                      rf.TWIST_TOPIC: tw['regenerated']}
 
 
 def test_compare_sets_plot(lockstep_run, tmp_path):
@@ -119,6 +144,7 @@ def test_replay_over_ros_reproduces_s_n(lockstep_run, launch, test_node, tmp_pat
                   '-p', f'desired_image:={png}')
     with bagio.bag(bag) as reader:
         rec = rf.read_topic(reader, '/features/s_n')
+        images = {rf.stamp_ns(m.header) for _, m in rf.read_topic(reader, '/camera/image_raw')}
     spin(20.0, until=lambda: node.count_publishers('/features/s_n') > 0 and
          node.count_subscribers('/detector/measurement') > 0 and
          node.count_publishers('/detector/measurement') > 0)
@@ -129,9 +155,10 @@ def test_replay_over_ros_reproduces_s_n(lockstep_run, launch, test_node, tmp_pat
          rf.stamp_ns(got[-1].header) >= last)
     spin(0.5)
     assert rep.popen.wait(10) == 0, rep.log()
-    assert 'error' not in (det.log() + feat.log()).lower(), det.log() + feat.log()
-    # after the last teach: the same messages, in the same order
-    after = [(st, m) for _, m in rec if (st := rf.stamp_ns(m.header)) > taught]
+    assert 'Traceback' not in det.log() + feat.log(), det.log() + feat.log()
+    # after the last teach: the same messages, in the same order (of the images in the bag)
+    after = [(st, m) for _, m in rec if (st := rf.stamp_ns(m.header)) > taught and
+             st in images]
     live = [(st, m) for m in got if (st := rf.stamp_ns(m.header)) > taught]
     assert len(live) == len(after) > 100
     for (sa, a), (sb, b) in zip(after, live):

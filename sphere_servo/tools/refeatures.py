@@ -1,7 +1,8 @@
 """refeatures: regenerate the pipeline's features from a recorded bag's images, offline.
 
     ros2 run sphere_servo refeatures BAG [--config NAME] [--sets SET ...] [--desired SPEC]
-                                     [--check [TOL]] [-o OUT [--storage S] [--servo]]
+                                     [--check [TOL]] [--json FILE]
+                                     [-o OUT [--storage S] [--servo]]
                                      [--compare SET ...] [--plot PNG] [--export-desired PNG]
 
 No ROS graph: the bag's images and camera_info go through the code the nodes run, in the
@@ -15,7 +16,9 @@ Desired features (``--desired``):
   auto         (default) the image the recorded run taught. The features node teaches the
                *latest* measurement and publishes features for every later one, so the
                taught image is the last image before the first recorded ``features/<set>``
-               message whose features reproduce that message's s* (its ``velocity``).
+               message whose features reproduce that message's s* (its ``velocity``) —
+               judged on the recorded ``detector/measurement`` when there is one, so a
+               changed detector still finds it. Each later change of s* is a re-teach.
   stamp:T      the image with header stamp T (seconds, e.g. ``stamp:1.133333333``)
   pose:X,Y,Z,ROLL,PITCH,YAW  exact projection of the target at cMo (``desired_source: pose``)
   image:FILE   an image file detected with the bag's intrinsics (``desired_source: image``)
@@ -38,8 +41,9 @@ What it prints or writes:
 from __future__ import annotations
 
 import argparse
+import json
 import sys
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -286,7 +290,8 @@ def parse_desired(spec: str) -> tuple[str, object]:
 
 
 def find_desired(pipe: Pipeline, frames: list[Frame], spec: str, recorded: dict,
-                 cameras: Cameras, names: list[str]) -> list[Desired]:
+                 cameras: Cameras, names: list[str],
+                 recorded_meas: list | None = None) -> list[Desired]:
     """The desired observations per ``--desired`` (see the module docstring), in the order
     they took effect (several when the recorded run was re-taught)."""
     from sphere_servo.core.geometry import GeometryError
@@ -329,7 +334,7 @@ def find_desired(pipe: Pipeline, frames: list[Frame], spec: str, recorded: dict,
                                    f'{exc}') from None
                 return [Desired('stamp', obs, f, start=f.index + 1)]
         raise BagError(f'no image stamped {stamp_text(arg)} in the bag')
-    return _auto_desired(pipe, frames, recorded, names)
+    return _auto_desired(pipe, frames, recorded, names, recorded_meas)
 
 
 def _teach_events(msgs: list) -> list[tuple[int, np.ndarray]]:
@@ -359,9 +364,15 @@ def _star_error(pipe: Pipeline, name: str, meas, star: np.ndarray) -> float:
         return np.inf
 
 
-def _auto_desired(pipe: Pipeline, frames: list[Frame], recorded: dict,
-                  names: list[str]) -> list[Desired]:
-    """The taught images: see ``auto`` in the module docstring; one per teach."""
+def _auto_desired(pipe: Pipeline, frames: list[Frame], recorded: dict, names: list[str],
+                  recorded_meas: list | None = None) -> list[Desired]:
+    """The taught images: see ``auto`` in the module docstring; one per teach. An image is
+    recognised by what the live features node saw — the recorded ``detector/measurement``
+    with its stamp when the bag has it — so a changed detector still finds the taught
+    image; the desired is then that image's regenerated measurement."""
+    seen: dict[int, list] = {}
+    for _, m in recorded_meas or []:
+        seen.setdefault(stamp_ns(m.header), []).append(m)
     have = [n for n in ('s_n', 's_cc', 's') if recorded.get(n)]  # s's s* is 0: weakest
     if not have:
         raise BagError('the bag has no features/<set> messages to find the taught image: '
@@ -387,7 +398,8 @@ def _auto_desired(pipe: Pipeline, frames: list[Frame], recorded: dict,
         for start in starts:
             for k in range(start):
                 if k not in errs:
-                    errs[k] = _star_error(pipe, name, frames[k].meas, star)
+                    errs[k] = min(_star_error(pipe, name, m, star) for m in
+                                  seen.get(frames[k].stamp, [frames[k].meas]))
             exact = [k for k in range(start) if errs[k] <= tol]
             if exact:
                 best, best_err = exact[-1], 0.0
@@ -449,7 +461,7 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
         raise BagError(f'no images on {topic_name(image_topic)}')
     rec_sets = {n: recorded[features_topic(n)] for n in names}
     want = list(dict.fromkeys([*names, settings.servo['feature_set']] if servo else names))
-    ds = find_desired(pipe, frames, desired, rec_sets, cameras, want)
+    ds = find_desired(pipe, frames, desired, rec_sets, cameras, want, recorded[MEAS_TOPIC])
     res = Result(frames, ds, recorded=recorded, sets=names, pipeline=pipe)
     res.streams[MEAS_TOPIC] = [(f.bag_ns, f.meas) for f in frames]
     streams = {features_topic(n): [] for n in want}
@@ -526,6 +538,7 @@ class Match:
     common: int       # how many could be paired: the stamps both streams have (multiset)
     same_names: bool
     max_diff: float
+    no_image: int = 0  # recorded messages of an image the bag lacks (the recorder lost it)
 
     def ok(self, tol: float = TOL, partial: bool = False) -> bool:
         """Message for message: the same count and stamps (``partial``: every message whose
@@ -569,7 +582,9 @@ def compare_recorded(res: Result, topic: str) -> Match | None:
         if va.size:
             diff = max(diff, float(np.max(np.abs(va - vb))))
     common = sum((Counter(gen_st) & Counter(rec_st)).values())
-    return Match(topic, len(gen), len(rec), len(pairs), common, names, diff)
+    images = Counter(f.stamp for f in res.frames)
+    no_image = sum(max(0, n - images[st]) for st, n in Counter(rec_st).items())
+    return Match(topic, len(gen), len(rec), len(pairs), common, names, diff, no_image)
 
 
 def write_bag(res: Result, out: Path, storage: str = 'mcap') -> dict[str, int]:
@@ -737,6 +752,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument('--check', nargs='?', type=float, const=TOL, default=None, metavar='TOL',
                    help=f'exit 1 unless every recorded features/measurement (and, with '
                         f'--servo, twist) topic is reproduced within TOL (default {TOL})')
+    p.add_argument('--json', default=None, metavar='FILE',
+                   help='also write the comparison (and the desireds found) as JSON')
     p.add_argument('-o', '--output', default=None, help='write the regenerated streams to '
                    'this new bag directory')
     p.add_argument('-s', '--storage', choices=['mcap', 'sqlite3'], default='mcap')
@@ -772,7 +789,7 @@ def main(argv=None) -> int:
 def _main(opts) -> int:
     from sphere_servo.tools.launcher import LaunchError
     out = check_new_output(opts.output) if opts.output else None
-    for f in (opts.plot, opts.export_desired):
+    for f in (opts.plot, opts.export_desired, opts.json):
         if f and not Path(f).parent.is_dir():
             raise BagError(f'directory of {f!r} does not exist')
     try:
@@ -788,18 +805,28 @@ def _main(opts) -> int:
             print(f'    taught image #{d.frame.index} stamped {stamp_text(d.frame.stamp)}; '
                   f'features from image #{d.start} on')
     ok = True
+    report = {'bag': str(opts.bag), 'images': len(res.frames), 'topics': {},
+              'desired': [{'how': d.how, 'note': d.note, 'start': d.start,
+                           'taught_index': d.frame.index if d.frame else None,
+                           'taught_stamp_ns': d.frame.stamp if d.frame else None}
+                          for d in res.desired]}
     print(f'  {"topic":28} {"regenerated":>11} {"recorded":>8}  stamps  max|diff|')
     for topic in res.streams:
         m = compare_recorded(res, topic)
         n = len(res.streams[topic])
+        report['topics'][topic] = {'regenerated': n} if m is None else asdict(m)
         if m is None:
             print(f'  {topic:28} {n:11d} {"-":>8}')
             continue
-        print(f'  {topic:28} {n:11d} {m.recorded:8d}  {m.stamps:6}  {m.max_diff:.3g}')
+        print(f'  {topic:28} {n:11d} {m.recorded:8d}  {m.stamps:6}  {m.max_diff:.3g}'
+              + (f'  ({m.no_image} recorded of images not in the bag)' if m.no_image else ''))
         # features: the same stream; the recorder may start on measurements before images,
         # and the servo is stopped before the last images
         if opts.check is not None:
             ok = ok and m.ok(opts.check, partial=topic in (MEAS_TOPIC, TWIST_TOPIC))
+    if opts.json:
+        report['ok'] = ok if opts.check is not None else None
+        Path(opts.json).write_text(json.dumps(report, indent=1, default=float) + '\n')
     if out is not None:
         counts = write_bag(res, out, opts.storage)
         print(f'refeatures: wrote {sum(counts.values())} messages to {out}')
