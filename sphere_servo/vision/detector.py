@@ -22,6 +22,7 @@ Pipeline for one ``rgb8`` / ``bgr8`` / ``mono8`` image and the intrinsics it is 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -33,6 +34,8 @@ from ..core.targets import CC, SPECIAL, Target
 
 ENCODINGS = ('rgb8', 'bgr8', 'mono8')
 _CHANNELS = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}
+
+_K3 = np.ones((3, 3), np.uint8)
 
 DEFAULT_COLORS = {'body': (235, 235, 225), 'P1': (220, 30, 30), 'P2': (30, 60, 220)}
 
@@ -68,13 +71,16 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data) -
 @dataclass
 class Mark:
     """One mark. ``uv_px`` (2,) pixel and ``xy_normalized`` (2,) normalized image point of its
-    centre (None when not visible); ``area_px`` its (weighted) image area."""
+    centre (None when not visible); ``area_px`` its (weighted) image area; ``partial``: a
+    surface cap cut by the limb, whose centre comes from its visible boundary arc (or, if
+    that cannot be measured, the mark is reported not visible)."""
 
     name: str
     uv_px: np.ndarray | None = None
     xy_normalized: np.ndarray | None = None
     visible: bool = False
     area_px: float = 0.0
+    partial: bool = False
 
     @property
     def q(self) -> np.ndarray:
@@ -150,51 +156,71 @@ def fit_conic(xy: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Algebraic conic fit ``a x² + b xy + c y² + d x + e y + f = 0`` to (N, 2) points, N ≥ 5,
     with Hartley normalization (centroid, RMS distance √2) and optional per-point weights.
     Returns the symmetric 3×3 conic in the input coordinates."""
-    m = xy.mean(axis=0)
-    sc = np.sqrt(2.0) / max(np.sqrt(np.mean(np.sum((xy - m) ** 2, axis=1))), 1e-300)
-    x = (xy[:, 0] - m[0]) * sc
-    y = (xy[:, 1] - m[1]) * sc
-    D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+    x = xy[:, 0].astype(np.float64)
+    y = xy[:, 1].astype(np.float64)
+    mx, my = float(x.mean()), float(y.mean())
+    x -= mx
+    y -= my
+    sc = math.sqrt(2.0 / max(float(np.dot(x, x) + np.dot(y, y)) / len(x), 1e-300))
+    x *= sc
+    y *= sc
+    D = np.empty((len(x), 6))
+    D[:, 0] = x * x
+    D[:, 1] = x * y
+    D[:, 2] = y * y
+    D[:, 3] = x
+    D[:, 4] = y
+    D[:, 5] = 1.0
     Dw = D if weights is None else D * weights[:, None]
     _, V = np.linalg.eigh(Dw.T @ D)           # smallest eigenvector of the scatter matrix
-    a, b, c, d, e, f = V[:, 0]
+    a, b, c, d, e, f = V[:, 0].tolist()
     Cn = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
-    T = np.array([[sc, 0, -sc * m[0]], [0, sc, -sc * m[1]], [0, 0, 1.0]])
+    T = np.array([[sc, 0, -sc * mx], [0, sc, -sc * my], [0, 0, 1.0]])
     C = T.T @ Cn @ T
     return C / np.linalg.norm(C)
 
 
 def sampson_distance(C: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """First-order geometric distance of (N, 2) points to the conic C (same units)."""
-    X = np.column_stack([xy, np.ones(len(xy))])
-    CX = X @ C
-    alg = np.sum(CX * X, axis=1)
-    g = 2.0 * CX[:, :2]
-    return alg / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+    (a, b, d), (_, c, e), (_, _, f) = C.tolist()
+    x, y = xy[:, 0], xy[:, 1]
+    gx = a * x + b * y + d
+    gy = b * x + c * y + e
+    alg = gx * x + gy * y + (d * x + e * y + f)
+    return alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300)
 
 
 def ellipse_params(C: np.ndarray):
     """Centre (2,), semi-axes (2,) and angle (rad, of the first axis) of the ellipse of the
     conic C, or None if C is not a real ellipse."""
-    A = C[:2, :2]
-    bvec = C[:2, 2]
-    try:
-        c = -np.linalg.solve(A, bvec)
-    except np.linalg.LinAlgError:
+    (a, b, d), (_, c, e), (_, _, f) = np.asarray(C, dtype=float).tolist()
+    det = a * c - b * b
+    if not det or not math.isfinite(det):
         return None
-    k = -(c @ A @ c + 2 * bvec @ c + C[2, 2])
-    w, V = np.linalg.eigh(A / k) if k != 0 else (np.array([-1.0, -1.0]), None)
-    if np.any(w <= 0):
+    cx = (b * e - c * d) / det
+    cy = (b * d - a * e) / det
+    k = -(a * cx * cx + 2 * b * cx * cy + c * cy * cy + 2 * d * cx + 2 * e * cy + f)
+    if k == 0:
         return None
-    axes = 1.0 / np.sqrt(w)
-    return c, axes, float(np.arctan2(V[1, 0], V[0, 0]))
+    a, b, c = a / k, b / k, c / k
+    # eigen-decomposition of [[a, b], [b, c]]
+    m, h = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    w1, w2 = m - h, m + h
+    if not (w1 > 0 and w2 > 0):
+        return None
+    ang = 0.5 * math.atan2(2 * b, a - c) + 0.5 * math.pi     # direction of w1 (long axis)
+    return (np.array([cx, cy]), np.array([1.0 / math.sqrt(w1), 1.0 / math.sqrt(w2)]),
+            float(math.atan2(math.sin(ang), math.cos(ang))))
 
-
-def _depth_ratio_v(b: np.ndarray, r_delta: float, q: np.ndarray) -> np.ndarray:
-    """Vectorized ``‖P‖/r`` of eq. (11)–(12), σ = −1, root clamped at 0 (DESIGN.md §2)."""
-    cphi = q @ b
-    sin2 = np.maximum(0.0, 1.0 - cphi * cphi)
-    return (cphi - np.sqrt(np.maximum(0.0, r_delta ** 2 - sin2))) / r_delta
+def _conic_from_rrect(cx: float, cy: float, w: float, h: float, angle_deg: float) -> np.ndarray:
+    """Conic (3×3, pixels) of a ``cv2.RotatedRect`` ellipse: full axis ``w`` along
+    ``angle_deg``, ``h`` across it (plain floats: this runs in the detector's inner loop)."""
+    a = math.radians(angle_deg)
+    ca, sa = math.cos(a), math.sin(a)
+    ia, ib = 4.0 / (w * w), 4.0 / (h * h)
+    A00, A01, A11 = ca * ca * ia + sa * sa * ib, ca * sa * (ia - ib), sa * sa * ia + ca * ca * ib
+    g0, g1 = -(A00 * cx + A01 * cy), -(A01 * cx + A11 * cy)
+    return np.array([[A00, A01, g0], [A01, A11, g1], [g0, g1, -(g0 * cx + g1 * cy) - 1.0]])
 
 
 # --- detector ------------------------------------------------------------------------------
@@ -210,12 +236,16 @@ class Detector:
     chroma_tol      largest chromaticity distance of a pixel to a configured colour.
     min_mark_px     smallest weighted area of a visible mark.
     K               half-length (px) of the edge profiles (sub-pixel step).
+    max_edge_points largest number of edge points of the final fit.
+    coarse_step     subsampling of the image in which the blob is found (1: none).
+    mark_radius     angular radius (rad) of the painted caps (fits a cap cut by the limb).
     """
 
     def __init__(self, colors: dict | None = None, surface_marks=('P1', 'P2'), *,
                  min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
-                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 300):
+                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 300,
+                 coarse_step: int = 4, mark_radius: float = float(np.radians(9.0))):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
             raise ValueError("colors must contain 'body'")
@@ -228,8 +258,16 @@ class Detector:
         self.min_mark_px = float(min_mark_px)
         self.K = int(K)
         self.max_edge_points = int(max_edge_points)
+        self.coarse_step = max(1, int(coarse_step))
         self._chroma = {k: self._to_chroma(np.asarray(v, float)) for k, v in
                         self.colors.items()}
+        self.cos_mark = float(np.cos(mark_radius))
+        self.limb_px = 1.5       # a cap's (grown) pixels this close to the silhouette (px):
+        #                          the cap is treated as cut by the limb
+        body = np.asarray(self.colors['body'], float)
+        # (3, 2): rgb → (a, b) with rgb ≈ a·mark + b·body (least squares)
+        self._unmix = {k: np.linalg.pinv(np.column_stack([np.asarray(v, float), body])).T
+                       for k, v in self.colors.items() if k != 'body'}
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'Detector':
@@ -238,11 +276,13 @@ class Detector:
         cols = target.colors
         colors = {'body': cols['body'], a: cols[a], b: cols.get(b, cols.get('P2'))}
         surface = (a, b) if target.kind == SPECIAL else (a,)
+        kw.setdefault('mark_radius', target.mark_radius)
         return cls(colors, surface, **kw)
 
     @staticmethod
     def _to_chroma(rgb: np.ndarray) -> np.ndarray:
-        return rgb / np.maximum(rgb.sum(axis=-1, keepdims=True), 1e-9)
+        tot = rgb[..., 0] + rgb[..., 1] + rgb[..., 2]     # (a last-axis .sum is slow)
+        return rgb / np.maximum(tot, 1e-9)[..., None]
 
     # --- public ---------------------------------------------------------------------------
     def detect(self, image: np.ndarray, encoding: str, camera) -> Detection:
@@ -254,45 +294,34 @@ class Detector:
         px, py, u0, v0 = _intrinsics(camera)
         img = self._check_image(image, encoding)
         H, W = img.shape[:2]
-        if img.ndim == 3:
-            c0, c1, c2 = cv2.split(img)
-            V = cv2.max(cv2.max(c0, c1), c2)
-            rgb = img if encoding == 'rgb8' else img[..., ::-1]
-        else:
-            V, rgb = img, None
-        thr, mask = cv2.threshold(V, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
-                       reverse=True)[:6]
-        reason = 'no bright blob in the image'
-        for cnt in cands:
-            area = cv2.contourArea(cnt)
-            if area < self.min_area_px:
-                reason = f'largest blob too small ({area:.0f} px < {self.min_area_px:.0f})'
-                break
-            res = self._fit_blob(cnt.reshape(-1, 2), V, rgb, W, H)
-            if isinstance(res, str):
-                reason = res
-                continue
-            C_px, resid, n_pts, cut = res
-            K = np.array([[px, 0, u0], [0, py, v0], [0, 0, 1.0]])
-            C_n = K.T @ C_px @ K
-            C_n = C_n / np.linalg.norm(C_n)
-            try:
-                sphere = sphere_from_conic(C_n)
-            except MeasurementError as exc:
-                reason = f'fitted conic is not a sphere image: {exc}'
-                continue
-            ep = ellipse_params(C_px)
-            c, ax, ang = ep
-            det = Detection(True, '', C_n, sphere, sphere.quality, resid,
-                            ((float(c[0]), float(c[1])), (float(2 * ax[0]), float(2 * ax[1])),
-                             float(np.degrees(ang))), {}, cut, n_pts)
-            det.marks = self._marks(img, rgb, V, float(thr), sphere, (px, py, u0, v0), ep)
-            return det
-        if rgb is not None and self._fills_frame(rgb):
-            reason = 'target too large for the image (the body fills the frame)'
-        return Detection(False, reason, marks={n: Mark(n) for n in self.mark_names})
+        rgb = None if img.ndim == 2 else (img if encoding == 'rgb8' else img[..., ::-1])
+        # find the blob on a subsampled image (nearest: pixel (i, j) is pixel (s·i, s·j));
+        # everything at full resolution happens along the blob's edge and in its box only
+        s = max(1, min(self.coarse_step, min(H, W) // 60))
+        res = self._find(img, rgb, s, W, H)
+        if isinstance(res, str) and s > 1 and res.startswith(('no bright', 'largest blob')):
+            res = self._find(img, rgb, 1, W, H)         # a tiny target: full resolution
+        if isinstance(res, str):
+            reason = res
+            if rgb is not None and self._fills_frame(rgb):
+                reason = 'target too large for the image (the body fills the frame)'
+            return Detection(False, reason, marks={n: Mark(n) for n in self.mark_names})
+        C_px, resid, n_pts, cut, thr = res
+        Kc = np.array([[px, 0, u0], [0, py, v0], [0, 0, 1.0]])
+        C_n = Kc.T @ C_px @ Kc
+        C_n = C_n / np.linalg.norm(C_n)
+        try:
+            sphere = sphere_from_conic(C_n)
+        except MeasurementError as exc:
+            return Detection(False, f'fitted conic is not a sphere image: {exc}',
+                             marks={n: Mark(n) for n in self.mark_names})
+        ep = ellipse_params(C_px)
+        c, ax, ang = ep
+        det = Detection(True, '', C_n, sphere, sphere.quality, resid,
+                        ((float(c[0]), float(c[1])), (float(2 * ax[0]), float(2 * ax[1])),
+                         float(np.degrees(ang))), {}, cut, n_pts)
+        det.marks = self._marks(img, encoding, rgb, thr, sphere, (px, py, u0, v0), ep, C_px)
+        return det
 
     # --- steps ----------------------------------------------------------------------------
     @staticmethod
@@ -313,88 +342,184 @@ class Detector:
             raise ValueError(f'image has zero size: shape {img.shape}')
         return np.ascontiguousarray(img)
 
-    def _fit_blob(self, pts: np.ndarray, V: np.ndarray, rgb, W: int, H: int):
-        """Sub-pixel ellipse of one outer contour ((N, 2) int pixels). Returns
-        ``(C_px, rms_px, n_points, cut_by_border)`` or a reason string."""
-        on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= W - 1) | (pts[:, 1] <= 0)
-                     | (pts[:, 1] >= H - 1))
-        cut = bool(on_border.any())
-        free = pts[~on_border].astype(np.float64)
-        if len(free) < 12 or len(free) < 0.3 * len(pts):
-            return ('target too large for the image (too little of its contour is inside)'
-                    if cut else 'blob too small')
-        if len(free) > self.max_edge_points:
-            free = free[np.linspace(0, len(free) - 1, self.max_edge_points).astype(int)]
-        C = fit_conic(free)
-        if ellipse_params(C) is None:
-            return 'blob is not elliptical'
-        # coarse robust fit: something bright touching the sphere (clutter, the CC stick)
-        # adds a lump to the outer contour; drop the worst points until the fit is tight
-        n0 = len(free)
-        for _ in range(6):
-            d = np.abs(sampson_distance(C, free))
-            tol = max(1.5, 2.5 * 1.4826 * np.median(d))
-            keep = d < tol
+    def _find(self, img, rgb, s: int, W: int, H: int):
+        """Threshold ``V = max(R, G, B)`` of the image subsampled by ``s`` (Otsu), take the
+        largest outer contours and fit each until one is the sphere. Returns
+        ``(C_px, rms_px, n_points, cut_by_border, threshold)`` or a reason string."""
+        if s > 1:
+            small = cv2.resize(img, (W // s, H // s), interpolation=cv2.INTER_NEAREST)
+        else:
+            small = img
+        if small.ndim == 3:
+            c0, c1, c2 = cv2.split(small)
+            Vs = cv2.max(cv2.max(c0, c1), c2)
+        else:
+            Vs = small
+        hs, ws = Vs.shape
+        thr, mask = cv2.threshold(Vs, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
+                       reverse=True)[:6]
+        reason = 'no bright blob in the image'
+        for cnt in cands:
+            area = cv2.contourArea(cnt) * s * s
+            if area < self.min_area_px:
+                reason = f'largest blob too small ({area:.0f} px < {self.min_area_px:.0f})'
+                break
+            pts = cnt.reshape(-1, 2)
+            on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= ws - 1) | (pts[:, 1] <= 0)
+                         | (pts[:, 1] >= hs - 1))
+            cut = bool(on_border.any())
+            free = pts[~on_border]
+            if len(free) < 8 or len(free) < 0.3 * len(pts):
+                reason = ('target too large for the image (too little of its contour is '
+                          'inside)' if cut else 'blob too small')
+                continue
+            res = self._fit_blob(free.astype(np.float32) * s, img, rgb, s, W, H)
+            if isinstance(res, str):
+                reason = res
+                continue
+            return res + (cut, float(thr))
+        return reason
+
+    @staticmethod
+    def _robust_ellipse(pts: np.ndarray, min_keep: int, tol_min: float, rounds: int = 4):
+        """``cv2.fitEllipse`` on float32 (N, 2) points, dropping the points far from the fit
+        (a lump on the contour: clutter touching the sphere, the CC stick) until it is tight.
+        Returns the conic (3×3, pixels) or None."""
+        for _ in range(rounds + 1):
+            if len(pts) < max(6, min_keep):
+                return None
+            (cx, cy), (w, h), a = cv2.fitEllipse(pts)
+            if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(w)
+                    and math.isfinite(h) and w > 0.5 and h > 0.5):
+                return None
+            C = _conic_from_rrect(cx, cy, w, h, a)
+            d = np.abs(sampson_distance(C, pts))
+            k = len(d) // 2
+            keep = d < max(tol_min, 4.5 * float(np.partition(d, k)[k]))
             if keep.all():
                 break
-            if keep.sum() < max(12, 0.3 * n0):
-                return 'blob is not elliptical'
-            free = free[keep]
-            C = fit_conic(free)
-            if ellipse_params(C) is None:
-                return 'blob is not elliptical'
-        # normals (outward) from the coarse conic's gradient
-        X = np.column_stack([free, np.ones(len(free))])
-        g = (X @ C)[:, :2]
-        ep = ellipse_params(C)
+            pts = pts[keep]
+        return C
+
+    def _fit_blob(self, free: np.ndarray, img, rgb, s: int, W: int, H: int):
+        """Sub-pixel ellipse from the free (not on the border) contour points of a blob,
+        (N, 2) float32 full-resolution pixels (found at step ``s``). Returns
+        ``(C_px, rms_px, n_points)`` or a reason string.
+
+        Along the coarse ellipse's outward normals (points on the image only), V is sampled
+        (bilinear) at unit steps over ±(2s + 4) px; on each profile the edge is the largest
+        fall of V (a mild preference for the middle keeps a nearby clutter edge from
+        winning), and its sub-pixel offset is the area under the anti-aliased step in a
+        window of M = K + 1 samples inside and K outside the nearest sample,
+        ``e = Σ_j c(o_j) − (M + ½)``, ``c = (I − I_out)/(S − I_out)`` clipped to [0, 1]
+        (exact for a box-filtered or blurred straight edge); the inside level S is
+        extrapolated from 2 and 3 px inside, since the body's shade changes quickly near
+        the limb."""
+        n0 = len(free)
+        if n0 > 400:
+            free = free[np.linspace(0, n0 - 1, 400).astype(int)]
+        C = self._robust_ellipse(free, int(0.3 * min(n0, 400)), 1.0 * s)
+        ep = None if C is None else ellipse_params(C)
         if ep is None:
             return 'blob is not elliptical'
-        n = g * np.sign(np.sum(g * (free - ep[0]), axis=1))[:, None]
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        K = self.K
-        offs = np.arange(-K, K + 1, dtype=np.float64)
-        # profiles sampled (bilinear) in a float copy of the blob's box only
-        x0, y0 = max(0, int(free[:, 0].min()) - K - 2), max(0, int(free[:, 1].min()) - K - 2)
-        x1 = min(W, int(free[:, 0].max()) + K + 3)
-        y1 = min(H, int(free[:, 1].max()) + K + 3)
-        Vf = V[y0:y1, x0:x1].astype(np.float32)
-        mx = (free[:, 0:1] - x0 + offs[None, :] * n[:, 0:1]).astype(np.float32)
-        my = (free[:, 1:2] - y0 + offs[None, :] * n[:, 1:2]).astype(np.float32)
-        prof = cv2.remap(Vf, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        i_out = prof[:, -2:].mean(axis=1)
-        # the body's shade changes quickly near the limb (its normal turns away): take the
-        # inside level from the samples 1 and 2 px inside the contour, extrapolated linearly
-        # across the edge, S(o) = I(−1) + (o + 1)(I(−1) − I(−2))
-        i1, i2 = prof[:, K - 1], prof[:, K - 2]
-        contrast = i1 - i_out
-        if np.median(contrast) < self.min_contrast:
-            return f'blob contrast {np.median(contrast):.0f} < {self.min_contrast:.0f}'
-        if rgb is not None and not self._body_coloured(rgb, free, n):
-            return 'blob is not body-coloured'
-        good = contrast > 0.5 * self.min_contrast
-        S = i1[:, None] + (offs[None, :] + 1.0) * (i1 - i2)[:, None]
-        cov = np.clip((prof - i_out[:, None]) / np.maximum(S - i_out[:, None], 1e-6), 0, 1)
-        cov[:, :K] = 1.0                      # at and beyond 1 px inside: body
-        e = cov.sum(axis=1) - (K + 0.5)
-        edge = free + e[:, None] * n
-        inside = (edge[:, 0] > 0.5) & (edge[:, 0] < W - 1.5) & (edge[:, 1] > 0.5) \
-            & (edge[:, 1] < H - 1.5)
-        edge = edge[good & inside & (np.abs(e) < K - 0.5)]
-        if len(edge) < 10:
+        (cx, cy), (a0, a1), ang = ep[0].tolist(), ep[1].tolist(), ep[2]
+        per = math.pi * (3 * (a0 + a1) - math.sqrt((3 * a0 + a1) * (a0 + 3 * a1)))
+        N = int(min(max(per / 1.5, 24), self.max_edge_points))
+        t = np.linspace(0.0, 2 * math.pi, N, endpoint=False)
+        ct, st = np.cos(t), np.sin(t)
+        ca, sa = math.cos(ang), math.sin(ang)
+        px_ = cx + (a0 * ca) * ct - (a1 * sa) * st
+        py_ = cy + (a0 * sa) * ct + (a1 * ca) * st
+        nx = (ca / a0) * ct - (sa / a1) * st
+        ny = (sa / a0) * ct + (ca / a1) * st
+        nn = np.sqrt(nx * nx + ny * ny)
+        nx /= nn
+        ny /= nn
+        L = 2 * s + 4
+        hx, hy = 0.5 * (W - 1), 0.5 * (H - 1)
+        ok = ((np.abs(px_ - hx) + L * np.abs(nx) <= hx - 1.0)
+              & (np.abs(py_ - hy) + L * np.abs(ny) <= hy - 1.0))
+        px_, py_, nx, ny = px_[ok], py_[ok], nx[ok], ny[ok]
+        if len(px_) < 10:
             return 'too few clean edge points'
+        offs = np.arange(-L, L + 1, dtype=np.float32)
+        mx = px_.astype(np.float32)[:, None] + offs[None, :] * nx.astype(np.float32)[:, None]
+        my = py_.astype(np.float32)[:, None] + offs[None, :] * ny.astype(np.float32)[:, None]
+        prof3 = cv2.remap(img, mx, my, cv2.INTER_LINEAR)
+        prof = (np.maximum(np.maximum(prof3[..., 0], prof3[..., 1]), prof3[..., 2])
+                if prof3.ndim == 3 else prof3)
+        prof = prof.astype(np.float32)
+        K, M = self.K, self.K + 1
+        # the edge lies between samples j and j + 1 where V falls most
+        drop = prof[:, :-1] - prof[:, 1:]
+        j = np.argmax(drop * self._drop_weight(L), axis=1)
+        j = np.clip(j, M, 2 * L - K)                  # the window must fit in the profile
+        r = np.arange(len(j))[:, None]
+        idx = j[:, None] + np.arange(-M, K + 1)[None, :]
+        if prof3.ndim == 3:
+            # a mixed pixel's V = max(R, G, B) is not linear in its coverage when the
+            # background's largest channel is not the body's: measure the step in the one
+            # channel with the largest inside − outside contrast (a mark at the limb is as
+            # bright as the body in its own channel)
+            w3 = prof3[r, idx].astype(np.float32)            # (N, M + K + 1, 3)
+            if rgb is not None and rgb.base is img:
+                w3 = w3[..., ::-1]             # bgr8: ties broken as for rgb8
+            ch = np.argmax(w3[:, M - 1] - w3[:, -1], axis=1)
+            win = w3[r[:, 0], :, ch]
+        else:
+            win = prof[r, idx]
+        i_out = 0.5 * (win[:, -1] + win[:, -2])
+        i2, i3 = win[:, M - 1], win[:, M - 2]
+        contrast = i2 - i_out
+        k = len(contrast) // 2
+        med = float(np.partition(contrast, k)[k])
+        if med < self.min_contrast:
+            return f'blob contrast {med:.0f} < {self.min_contrast:.0f}'
+        o = np.arange(-M, K + 1, dtype=np.float32)[None, :]
+        S = i2[:, None] + (o + 1.0) * (i2 - i3)[:, None]
+        cov = np.minimum(np.maximum((win - i_out[:, None])
+                                    / np.maximum(S - i_out[:, None], 1e-6), 0.0), 1.0)
+        cov[:, :M] = 1.0                      # 1 px inside and beyond: body
+        e = cov.sum(axis=1) - (M + 0.5) + (j - L)    # offset from the ellipse point
+        good = (contrast > 0.5 * self.min_contrast) & (np.abs(e - (j - L)) < 2.0)
+        ex = (px_ + e * nx)[good]
+        ey = (py_ + e * ny)[good]
+        if rgb is not None and not self._body_coloured(rgb, ex[::4] - (K + 1) * nx[good][::4],
+                                                       ey[::4] - (K + 1) * ny[good][::4]):
+            return 'blob is not body-coloured'
+        if len(ex) < 10:
+            return 'too few clean edge points'
+        edge = np.column_stack([ex, ey])
         C = fit_conic(edge)
-        for _ in range(2):
+        for _ in range(3):
             d = sampson_distance(C, edge)
-            sigma = 1.4826 * np.median(np.abs(d - np.median(d)))
-            keep = np.abs(d) < max(3.0 * sigma, 0.3)
+            k = len(d) // 2
+            med = float(np.partition(d, k)[k])
+            ad = np.abs(d - med)
+            sigma = 1.4826 * float(np.partition(ad, k)[k])
+            keep = ad < max(3.0 * sigma, 0.3)
             if keep.sum() < 10:
                 return 'too few clean edge points'
+            if keep.all():
+                break
             edge = edge[keep]
             C = fit_conic(edge)
         if ellipse_params(C) is None:
             return 'blob is not elliptical'
         rms = float(np.sqrt(np.mean(sampson_distance(C, edge) ** 2)))
-        return C, rms, len(edge), cut
+        return C, rms, len(edge)
+
+    _dw_cache: dict = {}
+
+    @classmethod
+    def _drop_weight(cls, L: int) -> np.ndarray:
+        w = cls._dw_cache.get(L)
+        if w is None:
+            mid = np.arange(-L, L, dtype=np.float32) + 0.5
+            w = cls._dw_cache[L] = (1.0 - 0.5 * (mid / (L + 1)) ** 2)[None, :]
+        return w
 
     def _fills_frame(self, rgb: np.ndarray) -> bool:
         """All four corners and the centre of the image are body-coloured."""
@@ -406,22 +531,22 @@ class Detector:
                                   - self._chroma['body']) < self.body_chroma_tol
                    for p in patches)
 
-    def _body_coloured(self, rgb: np.ndarray, pts: np.ndarray, n: np.ndarray) -> bool:
-        """Median chromaticity a few pixels inside the edge matches the body colour."""
-        p = np.round(pts - (self.K + 1) * n).astype(int)
+    def _body_coloured(self, rgb: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
+        """Median chromaticity at the pixels (u, v) (just inside the edge) matches the body
+        colour."""
         H, W = rgb.shape[:2]
-        p[:, 0] = np.clip(p[:, 0], 0, W - 1)
-        p[:, 1] = np.clip(p[:, 1], 0, H - 1)
-        ch = self._to_chroma(rgb[p[:, 1], p[:, 0]].astype(np.float64))
+        u = np.clip((u + 0.5).astype(int), 0, W - 1)
+        v = np.clip((v + 0.5).astype(int), 0, H - 1)
+        ch = self._to_chroma(rgb[v, u].astype(np.float64))
         return float(np.linalg.norm(np.median(ch, axis=0) - self._chroma['body'])) \
             < self.body_chroma_tol
 
-    def _marks(self, img, rgb, V, thr, sphere, intr, ep) -> dict:
+    def _marks(self, img, encoding, rgb, thr, sphere, intr, ep, C_px) -> dict:
         marks = {n: Mark(n) for n in self.mark_names}
         if rgb is None:                       # mono8: no colour, no marks
             return marks
         px, py, u0, v0 = intr
-        H, W = V.shape
+        H, W = img.shape[:2]
         c, ax, _ = ep
         # the CC tip can lie outside the disc; surface marks cannot
         off_surface = any(n not in self.surface_marks for n in self.mark_names)
@@ -430,60 +555,74 @@ class Detector:
         y0, y1 = max(0, int(c[1] - rad)), min(H, int(c[1] + rad) + 1)
         if x0 >= x1 or y0 >= y1:
             return marks
-        roi = rgb[y0:y1, x0:x1]
-        # saturated (max − min ≥ 0.27 max) and bright enough (not the dark background)
-        c0, c1, c2 = roi[..., 0], roi[..., 1], roi[..., 2]
-        vmax = V[y0:y1, x0:x1]
-        vmin = cv2.min(cv2.min(np.ascontiguousarray(c0), np.ascontiguousarray(c1)),
-                       np.ascontiguousarray(c2))
-        sat = cv2.subtract(vmax, vmin)
-        cand = (sat.astype(np.uint16) * 100 >= 27 * vmax.astype(np.uint16)) \
-            & (vmax >= 0.75 * thr)
-        cy, cx = np.nonzero(cand)
-        if cy.size == 0:
+        # one pass over the box: saturated (max − min ≥ 0.27 max, HSV S ≥ 69) and bright
+        # enough (not the dark background) are the mark candidates
+        hsv = cv2.cvtColor(img[y0:y1, x0:x1],
+                           cv2.COLOR_RGB2HSV if encoding == 'rgb8' else cv2.COLOR_BGR2HSV)
+        cand = cv2.findNonZero(cv2.inRange(hsv, (0, 69, int(np.ceil(0.75 * thr))),
+                                           (255, 255, 255)))
+        if cand is None:
             return marks
-        pix = roi[cy, cx].astype(np.float64)
-        ch = self._to_chroma(pix)
-        body = self._chroma['body']
+        cand = cand.reshape(-1, 2)
+        cx, cy = cand[:, 0], cand[:, 1]
+        roi = rgb[y0:y1, x0:x1]
+        ch = self._to_chroma(roi[cy, cx].astype(np.float64))
         for name in self.mark_names:
-            mc = self._chroma[name]
-            sel = np.linalg.norm(ch - mc, axis=1) < self.chroma_tol
+            dd = ch - self._chroma[name]
+            sel = (dd[:, 0] ** 2 + dd[:, 1] ** 2 + dd[:, 2] ** 2) < self.chroma_tol ** 2
             if not sel.any():
                 continue
-            m = np.zeros(cand.shape, np.uint8)
-            m[cy[sel], cx[sel]] = 1
+            sy, sx = cy[sel], cx[sel]
+            # components on the selected pixels' box only
+            ly, lx = int(sy.min()), int(sx.min())
+            m = np.zeros((int(sy.max()) - ly + 1, int(sx.max()) - lx + 1), np.uint8)
+            m[sy - ly, sx - lx] = 1
             nlab, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
             if nlab < 2:
                 continue
-            best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+            st = stats[1:]
+            areas = st[:, cv2.CC_STAT_AREA]
+            b = int(np.argmax(areas))
             # the largest blob and the pieces next to it (an occluder can split a mark)
-            bx, by, bw, bh = stats[best, :4]
+            bx, by, bw, bh = st[b, :4].tolist()
             reach = max(bw, bh)
-            parts = [k for k in range(1, nlab)
-                     if stats[k, cv2.CC_STAT_AREA] >= 0.05 * stats[best, cv2.CC_STAT_AREA]
-                     and stats[k, 0] <= bx + bw + reach and stats[k, 0] + stats[k, 2]
-                     >= bx - reach and stats[k, 1] <= by + bh + reach
-                     and stats[k, 1] + stats[k, 3] >= by - reach]
-            bx = min(stats[k, 0] for k in parts)
-            by = min(stats[k, 1] for k in parts)
-            bw = max(stats[k, 0] + stats[k, 2] for k in parts) - bx
-            bh = max(stats[k, 1] + stats[k, 3] for k in parts) - by
-            bx0, by0 = max(0, bx - 2), max(0, by - 2)
-            bx1, by1 = min(lab.shape[1], bx + bw + 2), min(lab.shape[0], by + bh + 2)
-            comp = np.isin(lab[by0:by1, bx0:bx1], parts).astype(np.uint8)
+            near = ((areas >= 0.05 * areas[b]) & (st[:, 0] <= bx + bw + reach)
+                    & (st[:, 0] + st[:, 2] >= bx - reach) & (st[:, 1] <= by + bh + reach)
+                    & (st[:, 1] + st[:, 3] >= by - reach))
+            lut = np.zeros(nlab, np.uint8)
+            lut[1:][near] = 1
+            sp = st[near]
+            bx, by = int(sp[:, 0].min()), int(sp[:, 1].min())
+            bx1 = int((sp[:, 0] + sp[:, 2]).max())
+            by1 = int((sp[:, 1] + sp[:, 3]).max())
+            # box in roi coordinates, grown by 2 px for the anti-aliased rim
+            gx0, gy0 = max(0, lx + bx - 2), max(0, ly + by - 2)
+            gx1 = min(roi.shape[1], lx + bx1 + 2)
+            gy1 = min(roi.shape[0], ly + by1 + 2)
+            comp = np.zeros((gy1 - gy0, gx1 - gx0), np.uint8)
+            oy, ox = ly + by - gy0, lx + bx - gx0
+            comp[oy:oy + by1 - by, ox:ox + bx1 - bx] = lut[lab[by:by1, bx:bx1]]
             # a painted cap is convex in the image: fill its convex hull, so that a thin
             # occluder (the CC stick lies across P1's cap) does not bias the centre
             hull = cv2.convexHull(cv2.findNonZero(comp))
             full = np.zeros_like(comp)
             cv2.fillConvexPoly(full, hull, 1)
-            grown = cv2.dilate(full, np.ones((3, 3), np.uint8))
+            grown = cv2.dilate(full, _K3)
             yy, xx = np.nonzero(grown)
-            p = roi[by0 + yy, bx0 + xx].astype(np.float64)
-            dv = mc - body
-            alpha = np.clip((self._to_chroma(p) - body) @ dv / (dv @ dv), 0.0, 1.0)
+            u = (x0 + gx0) + xx.astype(np.float64)
+            v = (y0 + gy0) + yy.astype(np.float64)
+            rim = None
             if name in self.surface_marks:
-                inner = cv2.erode(full, np.ones((3, 3), np.uint8))[yy, xx] > 0
+                # coverage by unmixing: pixel = a·shade·mark + b·shade·body, α = a/(a + b)
+                ab = roi[gy0 + yy, gx0 + xx].astype(np.float64) @ self._unmix[name]
+                alpha = np.clip(ab[:, 0] / np.maximum(ab[:, 0] + ab[:, 1], 1e-9), 0.0, 1.0)
+                inner = cv2.erode(full, _K3)[yy, xx] > 0
                 alpha[inner] = 1.0
+                dsil = np.abs(sampson_distance(C_px, np.column_stack([u, v])))
+                if float(dsil.min()) < self.limb_px:
+                    # (nearly) cut by the limb: the visible part's mean is biased; use the
+                    # boundary with the body, away from the silhouette
+                    rim = (~inner) & (alpha > 0.2) & (alpha < 0.8) & (dsil > self.limb_px + 1.0)
             else:
                 # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
                 # with the background, whose chromaticity says nothing of coverage)
@@ -491,18 +630,20 @@ class Detector:
             area = float(alpha.sum())
             if area < self.min_mark_px:
                 continue
-            u = x0 + bx0 + xx.astype(np.float64)
-            v = y0 + by0 + yy.astype(np.float64)
             xn = (u - u0) / px
             yn = (v - v0) / py
             if name in self.surface_marks:
-                xy = self._cap_centre(sphere, xn, yn, alpha)
+                res = self._cap_centre(sphere, xn, yn, alpha, rim)
+                if res is None:
+                    marks[name] = Mark(name, area_px=area, partial=rim is not None)
+                    continue
+                xy = res[0]
             else:
                 xy = self._ball_centre(u, v, alpha, (px, py, u0, v0))
-            if xy is None:
-                continue
+                if xy is None:
+                    continue
             uv = np.array([px * xy[0] + u0, py * xy[1] + v0])
-            marks[name] = Mark(name, uv, xy, True, area)
+            marks[name] = Mark(name, uv, xy, True, area, partial=rim is not None)
         return marks
 
     @staticmethod
@@ -527,28 +668,74 @@ class Detector:
         return b[:2] / b[2]
 
     @staticmethod
-    def _cap_centre(sphere: SphereMeasurement, xn, yn, w) -> np.ndarray | None:
-        """Centre of a painted cap from its pixels (normalized coords, weights ``w``):
-        back-project on the sphere (units of r, eq. 11–12), weight each by the surface area
-        of its footprint (``‖P‖² / (‖x̄‖³ cos i)``), average the unit normals, and project
-        ``s_n,t + n̄`` back to the image (DESIGN.md §2, second lesson)."""
-        xb = np.column_stack([xn, yn, np.ones_like(xn)])
-        nrm = np.linalg.norm(xb, axis=1)
-        q = xb / nrm[:, None]
-        rho = _depth_ratio_v(sphere.b, sphere.r_delta, q)
-        Pr = rho[:, None] * q
-        nv = Pr - sphere.s_nt
-        nv /= np.maximum(np.linalg.norm(nv, axis=1, keepdims=True), 1e-12)
-        cos_i = np.clip(-np.sum(nv * q, axis=1), 0.1, 1.0)
-        wa = w * rho ** 2 / (nrm ** 3 * cos_i)
-        nbar = (wa[:, None] * nv).sum(axis=0)
-        if np.linalg.norm(nbar) < 1e-12:
-            return None
-        P = sphere.s_nt + nbar / np.linalg.norm(nbar)
-        if P[2] <= 0:
-            return None
-        return P[:2] / P[2]
+    def _on_sphere(sphere: SphereMeasurement, xn, yn):
+        """Back-project normalized image points on the estimated sphere (eq. 11–12, units
+        of r): the unit surface normals (3, N), ‖x̄‖ (N,), ‖P‖/r (N,) and the cosine of the
+        viewing incidence (N,)."""
+        nrm = np.sqrt(xn * xn + yn * yn + 1.0)
+        qx, qy, qz = xn / nrm, yn / nrm, 1.0 / nrm
+        (bx, by, bz), rd = sphere.b.tolist(), sphere.r_delta
+        cphi = qx * bx + qy * by + qz * bz
+        rho = (cphi - np.sqrt(np.maximum(0.0, rd * rd - np.maximum(0.0, 1.0 - cphi * cphi)))) \
+            / rd
+        sx, sy, sz = sphere.s_nt.tolist()
+        nx, ny, nz = rho * qx - sx, rho * qy - sy, rho * qz - sz
+        nn = np.maximum(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+        n = np.stack([nx / nn, ny / nn, nz / nn])
+        cos_i = -(n[0] * qx + n[1] * qy + n[2] * qz)
+        return n, nrm, rho, cos_i
 
+    def _cap_centre(self, sphere: SphereMeasurement, xn, yn, w, rim=None):
+        """Centre of a painted cap from its pixels (normalized coords, coverage ``w``).
+
+        Whole cap: back-project the pixels on the sphere (units of r, eq. 11–12), weight
+        each by the surface area of its footprint (``‖P‖² / (‖x̄‖³ cos i)``) and average the
+        unit normals (DESIGN.md §2, second lesson).
+
+        ``rim`` (bool mask of the pixels on the cap's boundary with the body, away from the
+        silhouette) is given when the cap is cut by the limb: then the visible part's mean
+        is biased towards the camera, and the centre comes instead from the cap's boundary
+        circle, ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit
+        m, weights cos² i for the back-projection's sensitivity, outliers — the CC stick —
+        dropped) to the rim pixels' normals.
+
+        Returns ``(xy of s_n,t + m, m)`` or None when the centre cannot be measured (it
+        faces away from the camera, or too little rim is visible)."""
+        n, nrm, rho, cos_i = self._on_sphere(sphere, xn, yn)
+        wa = w * rho * rho / (nrm ** 3 * np.maximum(cos_i, 0.1))
+        m = n @ wa
+        m /= max(float(np.sqrt(m @ m)), 1e-300)
+        if rim is not None:
+            nb, cb = n[:, rim], np.maximum(cos_i[rim], 0.05)
+            if nb.shape[1] < 8:
+                return None
+            wb = cb * cb
+            cosr = self.cos_mark
+            for it in range(8):
+                t1 = np.cross(m, [1.0, 0, 0] if abs(m[0]) < 0.9 else [0, 1.0, 0])
+                t1 /= np.linalg.norm(t1)
+                t2 = np.cross(m, t1)
+                res = m @ nb - cosr
+                J = np.stack([t1 @ nb, t2 @ nb])             # (2, N)
+                Jw = J * wb
+                A = Jw @ J.T
+                if abs(np.linalg.det(A)) < 1e-18:
+                    return None
+                dx = -np.linalg.solve(A, Jw @ res)
+                m = m + dx[0] * t1 + dx[1] * t2
+                m /= np.linalg.norm(m)
+                if it == 2:                     # drop outliers once (the CC stick's rim)
+                    r = np.abs(m @ nb - cosr)
+                    keep = r < max(3.0 * 1.4826 * float(np.median(r)), 2e-3)
+                    if keep.sum() < 8:
+                        return None
+                    nb, wb = nb[:, keep], wb[keep]
+                if abs(dx).max() < 1e-7:
+                    break
+        P = sphere.s_nt + m
+        if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
+            return None
+        return P[:2] / P[2], m
 
 def detect(image: np.ndarray, encoding: str, camera, target: Target | None = None,
            **kw) -> Detection:
