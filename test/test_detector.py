@@ -13,90 +13,111 @@ from sphere_servo.core.measurement import (MeasurementError, cRo_measured, mark_
                                            model_cRo_offset, observe)
 from sphere_servo.core.targets import balloon, cc_target, special_sphere
 from sphere_servo.vision.detector import Detector, image_from_buffer
+from sphere_servo.vision.poses import incidence_deg
+from sphere_servo.vision.poses import random_poses as _random_poses
+from sphere_servo.vision.poses import silhouette_px_conic as _silhouette
 from sphere_servo.vision.renderer import Renderer, conic_bbox
 
 CAM = CameraIntrinsics()          # 640×480, px = py = 600
+# The accuracy pose set: seeded poses at 0.25–1.0 m, sphere fully in view, uniformly random
+# orientation, every mark facing the camera (its centre on the visible side, the CC tip not
+# hidden by the body) and the surface marks' centres seen within 75° of their normal. Caps
+# beyond ~65° touch the limb: their centre comes from the visible boundary arc (Mark.partial).
+# Past 75° the visible sliver of a 9° cap is a few pixels wide at 1 m, its rim too short to
+# fit and the CC stick covers much of what is left, so those poses are not included.
+MAX_INCIDENCE = 75.0
+# at most this fraction of the poses may have a partial cap the detector cannot measure
+# (reported visible=False, partial=True; never a wrong centre)
+MAX_UNMEASURED = 0.10
 
 
 def silhouette_px_conic(cMo, target, cam=CAM):
-    """Ground-truth conic of the sphere's image in pixels (DESIGN.md §2)."""
-    O = np.asarray(cMo.translation)
-    b = O / np.linalg.norm(O)
-    cos2 = 1 - (target.radius / np.linalg.norm(O)) ** 2
-    return cam.K_inv.T @ (np.outer(b, b) - cos2 * np.eye(3)) @ cam.K_inv
+    return _silhouette(cMo, target, cam)
 
 
-def incidence_deg(cMo, oP):
-    n = cMo.rotation @ (oP / np.linalg.norm(oP))
-    cP = cMo.act(oP)
-    return float(np.degrees(np.arccos(-n @ cP / np.linalg.norm(cP))))
-
-
-def random_poses(target, n, seed, max_incidence=60.0):
-    """Seeded poses at 0.25–1.0 m, sphere fully in the 640×480 image, surface marks facing
-    the camera within ``max_incidence`` degrees (caps entirely on the visible side), the CC
-    tip unoccluded."""
-    rng = np.random.default_rng(seed)
-    out = []
-    while len(out) < n:
-        d = rng.uniform(0.25, 1.0)
-        O = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), 1.0])
-        cMo = pin.SE3(pin.exp3(rng.normal(size=3) * 2.0), O / np.linalg.norm(O) * d)
-        box = conic_bbox(silhouette_px_conic(cMo, target))
-        if box is None or box[0] < 2 or box[1] > CAM.width - 3 or box[2] < 2 \
-                or box[3] > CAM.height - 3:
-            continue
-        if not all(mark_visible(cMo, target, k) for k in target.mark_names):
-            continue
-        marks_uv = CAM.project(np.array([cMo.act(p) for p in (target.oP1, target.oP2)]))
-        if not CAM.in_image(marks_uv, margin=12).all():
-            continue
-        if incidence_deg(cMo, target.oP1) > max_incidence:
-            continue
-        if target.kind == 'special' and incidence_deg(cMo, target.oP2) > max_incidence:
-            continue
-        out.append(cMo)
-    return out
+def random_poses(target, n, seed, max_incidence=MAX_INCIDENCE):
+    return _random_poses(target, CAM, n, seed, max_incidence)
 
 
 def errors(target, poses, noise=0.0):
-    """Relative s_n,t errors and θu errors (deg) of ᶜR_o measured vs ground truth."""
+    """Relative s_n,t errors (%) and θu errors (deg) of ᶜR_o measured vs ground truth; θu over
+    the poses whose marks were all measured (a mark left unmeasured must be a partial cap,
+    and there are at most MAX_UNMEASURED of those poses)."""
     ren = Renderer(CAM, target, noise_sigma=noise, seed=3)
     det = Detector.for_target(target)
-    e_s, e_r = [], []
+    e_s, e_r, unmeasured = [], [], 0
     for cMo in poses:
         truth = observe(cMo, target)
         d = det.detect(ren.render(cMo), 'rgb8', CAM)
         assert d.found, d.reason
         e_s.append(np.linalg.norm(d.sphere.s_nt - truth.sphere.s_nt)
                    / np.linalg.norm(truth.sphere.s_nt))
+        missing = [m for m in d.marks.values() if not m.visible]
+        if missing:
+            assert all(m.partial for m in missing), [m.name for m in missing]
+            unmeasured += 1
+            continue
         R_meas = cRo_measured(d.to_observation(target.kind))
         R_true = cMo.rotation @ model_cRo_offset(target)
         e_r.append(np.degrees(np.linalg.norm(pin.log3(R_meas @ R_true.T))))
+    assert unmeasured <= MAX_UNMEASURED * len(poses), unmeasured
     return np.array(e_s) * 100, np.array(e_r)
 
 
-# the CC stick hides part of P1's cap at grazing views: P1 within 45° of frontal for CC
-CASES = [('special', special_sphere, 60.0), ('cc', cc_target, 45.0)]
+CASES = [('special', special_sphere), ('cc', cc_target)]
 
 
-@pytest.mark.parametrize('name,make,max_inc', CASES)
-def test_accuracy_clean(name, make, max_inc):
+@pytest.mark.parametrize('name,make', CASES)
+def test_accuracy_clean(name, make):
     target = make()
-    e_s, e_r = errors(target, random_poses(target, 150, seed=11, max_incidence=max_inc))
+    e_s, e_r = errors(target, random_poses(target, 150, seed=11))
     assert np.median(e_s) < 0.2 and np.percentile(e_s, 99) < 1.0, (np.median(e_s),
                                                                    np.percentile(e_s, 99))
     assert np.median(e_r) < 0.3 and np.percentile(e_r, 99) < 1.5, (np.median(e_r),
                                                                    np.percentile(e_r, 99))
 
 
-@pytest.mark.parametrize('name,make,max_inc', CASES)
-def test_accuracy_noise_sigma3(name, make, max_inc):
+@pytest.mark.parametrize('name,make', CASES)
+def test_accuracy_noise_sigma3(name, make):
     target = make()
-    e_s, e_r = errors(target, random_poses(target, 60, seed=12, max_incidence=max_inc),
-                      noise=3.0)
+    e_s, e_r = errors(target, random_poses(target, 60, seed=12), noise=3.0)
     assert np.median(e_s) < 0.5, np.median(e_s)
     assert np.median(e_r) < 1.0, np.median(e_r)
+
+
+def test_caps_cut_by_the_limb_are_measured_from_their_rim():
+    """Poses with a cap seen at 68–75° incidence (it touches the limb): flagged partial;
+    about half can be measured from their rim (the others are short slivers at a long
+    distance, reported not visible) and those keep θu within the accuracy budget."""
+    target = special_sphere()
+    poses = [M for M in random_poses(target, 400, seed=31)
+             if max(incidence_deg(M, target.oP1), incidence_deg(M, target.oP2)) > 68][:25]
+    det, ren = Detector.for_target(target), Renderer(CAM, target)
+    errs, partial = [], 0
+    for cMo in poses:
+        d = det.detect(ren.render(cMo), 'rgb8', CAM)
+        partial += any(m.partial for m in d.marks.values())
+        if all(m.visible for m in d.marks.values()):
+            R = cRo_measured(d.to_observation('special'))
+            R_true = cMo.rotation @ model_cRo_offset(target)
+            errs.append(np.degrees(np.linalg.norm(pin.log3(R @ R_true.T))))
+    assert partial >= 10 and len(errs) >= 0.5 * len(poses), len(errs)
+    assert np.median(errs) < 0.3 and max(errs) < 1.5, errs
+
+
+def test_dim_light_clutter_touching_the_sphere_is_not_fitted():
+    """Gain 0.7: a bright clutter shape touching the silhouette passes the threshold and
+    merges with it (the gallery's 'clutter_dim' frame); its contour and edge points are
+    rejected because what lies inside them is not body-coloured."""
+    target = special_sphere()
+    cMo = pin.SE3(pin.exp3(np.array([0.35, -0.45, 0.15])), np.array([0.03, 0.04, 0.45]))
+    img = Renderer(CAM, target, background='clutter', gain=0.7, seed=1).render(cMo)
+    res = Detector.for_target(target).detect(img, 'rgb8', CAM)
+    truth = observe(cMo, target, require_visible=False)
+    assert res.found, res.reason
+    assert res.residual_px < 0.3, res.residual_px
+    assert np.linalg.norm(res.sphere.s_nt - truth.sphere.s_nt) \
+        < 0.002 * np.linalg.norm(truth.sphere.s_nt)
 
 
 def _outside_fraction(C_px, W=640, H=480):

@@ -19,21 +19,18 @@ import pinocchio as pin
 from ..core.camera import CameraIntrinsics
 from ..core.targets import cc_target, special_sphere
 from ..vision.detector import Detector
+from ..vision.poses import random_poses
 from ..vision.renderer import Renderer
 
 
 def _frames(n: int, seed: int = 0):
+    """Ray-cast frames of the special sphere at the detector tests' random poses (0.25–1.0 m,
+    sphere fully in view, any orientation)."""
     cam = CameraIntrinsics()
     target = special_sphere()
     ren = Renderer(cam, target)
-    rng = np.random.default_rng(seed)
-    out = []
-    while len(out) < n:
-        d = rng.uniform(0.25, 1.0)
-        O = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.15, 0.15), 1.0])
-        cMo = pin.SE3(pin.exp3(rng.normal(size=3) * 2.0), O / np.linalg.norm(O) * d)
-        out.append(ren.render(cMo))
-    return cam, target, out
+    return cam, target, [ren.render(M) for M in random_poses(target, cam, n, seed,
+                                                              max_incidence=None)]
 
 
 def baseline_ellipse(img: np.ndarray):

@@ -375,6 +375,19 @@ class Detector:
                 reason = ('target too large for the image (too little of its contour is '
                           'inside)' if cut else 'blob too small')
                 continue
+            if small.ndim == 3:
+                # keep the contour points whose inside (2 px towards the blob's centre) is
+                # body-coloured: a bright clutter shape or a mark merged with the sphere
+                # must not pull the coarse ellipse
+                f = free.astype(np.float64)
+                dv = f.mean(axis=0) - f
+                dn = np.sqrt(dv[:, 0] ** 2 + dv[:, 1] ** 2)
+                qi = (f + 2.0 * dv / np.maximum(dn, 1e-9)[:, None] + 0.5).astype(int)
+                body = self._is_body(small[qi[:, 1], qi[:, 0]], bgr=rgb is not img)
+                if body.sum() < max(8, 0.3 * len(free)):
+                    reason = 'blob is not body-coloured'
+                    continue
+                free = free[body]
             res = self._fit_blob(free.astype(np.float32) * s, img, rgb, s, W, H)
             if isinstance(res, str):
                 reason = res
@@ -464,7 +477,7 @@ class Detector:
             # channel with the largest inside − outside contrast (a mark at the limb is as
             # bright as the body in its own channel)
             w3 = prof3[r, idx].astype(np.float32)            # (N, M + K + 1, 3)
-            if rgb is not None and rgb.base is img:
+            if rgb is not img:
                 w3 = w3[..., ::-1]             # bgr8: ties broken as for rgb8
             ch = np.argmax(w3[:, M - 1] - w3[:, -1], axis=1)
             win = w3[r[:, 0], :, ch]
@@ -484,11 +497,14 @@ class Detector:
         cov[:, :M] = 1.0                      # 1 px inside and beyond: body
         e = cov.sum(axis=1) - (M + 0.5) + (j - L)    # offset from the ellipse point
         good = (contrast > 0.5 * self.min_contrast) & (np.abs(e - (j - L)) < 2.0)
+        if prof3.ndim == 3:
+            # the edge is the body's only where the inside (M px in) is body-coloured
+            body = self._is_body(w3[:, 0])
+            if body.sum() < 0.5 * len(body):
+                return 'blob is not body-coloured'
+            good &= body
         ex = (px_ + e * nx)[good]
         ey = (py_ + e * ny)[good]
-        if rgb is not None and not self._body_coloured(rgb, ex[::4] - (K + 1) * nx[good][::4],
-                                                       ey[::4] - (K + 1) * ny[good][::4]):
-            return 'blob is not body-coloured'
         if len(ex) < 10:
             return 'too few clean edge points'
         edge = np.column_stack([ex, ey])
@@ -531,15 +547,15 @@ class Detector:
                                   - self._chroma['body']) < self.body_chroma_tol
                    for p in patches)
 
-    def _body_coloured(self, rgb: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
-        """Median chromaticity at the pixels (u, v) (just inside the edge) matches the body
-        colour."""
-        H, W = rgb.shape[:2]
-        u = np.clip((u + 0.5).astype(int), 0, W - 1)
-        v = np.clip((v + 0.5).astype(int), 0, H - 1)
-        ch = self._to_chroma(rgb[v, u].astype(np.float64))
-        return float(np.linalg.norm(np.median(ch, axis=0) - self._chroma['body'])) \
-            < self.body_chroma_tol
+    def _is_body(self, pix: np.ndarray, bgr: bool = False) -> np.ndarray:
+        """(N,) bool: the (N, 3) rgb (bgr if ``bgr``) pixels have the body's chromaticity
+        (within 1.5 ``body_chroma_tol``)."""
+        pix = pix.astype(np.float32)
+        r, g, b = (pix[:, 2], pix[:, 1], pix[:, 0]) if bgr else (pix[:, 0], pix[:, 1], pix[:, 2])
+        tot = np.maximum(r + g + b, 1e-6)
+        c0, c1, c2 = self._chroma['body'].tolist()
+        d2 = (r / tot - c0) ** 2 + (g / tot - c1) ** 2 + (b / tot - c2) ** 2
+        return d2 < (1.5 * self.body_chroma_tol) ** 2
 
     def _marks(self, img, encoding, rgb, thr, sphere, intr, ep, C_px) -> dict:
         marks = {n: Mark(n) for n in self.mark_names}
