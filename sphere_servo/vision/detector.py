@@ -727,26 +727,32 @@ class Detector:
                 return None
             wb = cb * cb
             cosr = self.cos_mark
-            for it in range(8):
-                t1 = np.cross(m, [1.0, 0, 0] if abs(m[0]) < 0.9 else [0, 1.0, 0])
-                t1 /= np.linalg.norm(t1)
-                t2 = np.cross(m, t1)
+            for it in range(6):
+                # tangent basis (t1, t2) at m, then one weighted Gauss–Newton step
+                mx, my, mz = m.tolist()
+                t1 = np.array([0.0, -mz, my]) if abs(mx) < 0.9 else np.array([mz, 0.0, -mx])
+                t1 /= math.sqrt(float(t1 @ t1))
+                t2 = np.array([my * t1[2] - mz * t1[1], mz * t1[0] - mx * t1[2],
+                               mx * t1[1] - my * t1[0]])
                 res = m @ nb - cosr
-                J = np.stack([t1 @ nb, t2 @ nb])             # (2, N)
-                Jw = J * wb
-                A = Jw @ J.T
-                if abs(np.linalg.det(A)) < 1e-18:
+                j1, j2 = t1 @ nb, t2 @ nb
+                a11, a12, a22 = float(wb @ (j1 * j1)), float(wb @ (j1 * j2)), \
+                    float(wb @ (j2 * j2))
+                g1, g2 = float(wb @ (j1 * res)), float(wb @ (j2 * res))
+                det = a11 * a22 - a12 * a12
+                if det < 1e-18:
                     return None
-                dx = -np.linalg.solve(A, Jw @ res)
-                m = m + dx[0] * t1 + dx[1] * t2
-                m /= np.linalg.norm(m)
-                if it == 2:                     # drop outliers once (the CC stick's rim)
+                d1, d2 = -(a22 * g1 - a12 * g2) / det, -(a11 * g2 - a12 * g1) / det
+                m = m + d1 * t1 + d2 * t2
+                m /= math.sqrt(float(m @ m))
+                if it == 1:                     # drop outliers once (the CC stick's rim)
                     r = np.abs(m @ nb - cosr)
-                    keep = r < max(3.0 * 1.4826 * float(np.median(r)), 2e-3)
+                    k = len(r) // 2
+                    keep = r < max(3.0 * 1.4826 * float(np.partition(r, k)[k]), 2e-3)
                     if keep.sum() < 8:
                         return None
                     nb, wb = nb[:, keep], wb[keep]
-                if abs(dx).max() < 1e-7:
+                elif max(abs(d1), abs(d2)) < 1e-7:
                     break
         P = sphere.s_nt + m
         if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
