@@ -37,17 +37,15 @@ def desired_cMo(config_name: str) -> pin.SE3:
 class Topics:
     """Collects what the test node hears."""
 
-    def __init__(self, node, image=True):
-        self.poses, self.images, self.twists, self.meas = [], set(), [], []
+    def __init__(self, node):
+        self.poses, self.twists, self.meas = [], [], []
         node.create_subscription(PoseStamped, 'ground_truth/camera_pose',
                                  lambda m: self.poses.append(m), 1000)
         node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped',
                                  lambda m: self.twists.append(m), 1000)
         node.create_subscription(JointState, 'detector/measurement',
                                  lambda m: self.meas.append(m), 1000)
-        if image:  # camera_info carries the image's header and is cheap to receive
-            node.create_subscription(CameraInfo, 'camera/camera_info',
-                                     lambda m: self.images.add(stamp(m)), 1000)
+
 
 
 @pytest.mark.parametrize('config, ideal', [
@@ -82,14 +80,16 @@ def test_full_loop_converges(config, ideal, launch, test_node):
         assert t_err < 5e-3 and r_err < 1.0, history
     # stamps flow: every measurement and every twist carries the stamp of an image
     assert len(topics.twists) > 50
-    # (the observing test node may miss a few messages under load: the publishers keep 10)
+    # Stamps flow: every measurement and twist carries a frame time of the simulator, and the
+    # twists follow the images in order. (The exact header chain image → measurement →
+    # features → twist is asserted node by node below; this observer may miss messages on a
+    # loaded machine, so it does not match sets here.)
     period = 1.0 / launcher.node_params(launcher.load_config(launcher.find_config(config)),
                                         'arm_sim').get('camera_rate', 30.0)
     for msgs in (topics.meas, topics.twists):
         k = (np.array([stamp(m) for m in msgs]) - 1.0) / period  # sim time starts at 1 s
         assert np.allclose(k, np.round(k), atol=1e-6), 'a stamp that is not a frame time'
-        matched = np.mean([stamp(m) in topics.images for m in msgs])
-        assert matched > 0.8, matched  # the exact chain is tested node by node
+    assert np.all(np.diff([stamp(t) for t in topics.twists]) >= 0)
 
 
 def test_every_executable_resolves_like_ros2_run(ros_env):
@@ -227,14 +227,18 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
         assert sup.state == 'stale', sup.state
         late = [m for t, m in twists if t > t_kill + timeout + 0.2]
         assert late and all(_norm(m) == 0 for m in late)
-        t_stale = sup.last_pose[0]  # sim time once the servo went stale
-        pose_before = sup.last_pose[1]
+        n_before = len(joints)
         sup.spin(1.0)  # at rest: zero joint velocities, and the camera does not move
-        rest = [m for _, m in joints if stamp(m) > t_stale]
-        assert rest and all(np.allclose(m.velocity, 0.0) for m in rest)
-        assert np.allclose(sup.last_pose[1].homogeneous, pose_before.homogeneous, atol=1e-9)
+        rest = [m for _, m in joints[n_before:]][-10:]  # the stale servo's zeros step the sim
+        assert len(rest) == 10 and all(np.allclose(m.velocity, 0.0) for m in rest)
+        pose_a = sup.last_pose
+        sup.spin(0.5)
+        assert sup.last_pose[0] > pose_a[0]  # the sim still steps (zero twists) ...
+        assert np.allclose(sup.last_pose[1].homogeneous, pose_a[1].homogeneous, atol=1e-9)
         run.restart('detector')
-        assert sup.wait(sup.converged, 120.0, lambda: not run.dead()), sup.state
+        out.flush()
+        assert sup.wait(sup.converged, 120.0, lambda: not run.dead()), (
+            sup.state, (tmp_path / 'launch.log').read_text()[-3000:])
     finally:
         if sup is not None:
             sup.close()

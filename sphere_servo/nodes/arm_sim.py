@@ -35,7 +35,8 @@ Clock modes (parameter ``clock_mode``)
                   (and the one after a reset/go_* jump) is published at once and *re-published*
                   unchanged (same stamp) every ``idle_republish_period`` wall seconds until
                   the next command arrives, so a subscriber that connects late still gets
-                  it; all topics use the default (volatile, reliable, depth 10) QoS.
+                  it; all topics are volatile and reliable, with a history of 30 images
+                  and 100 of the other messages.
 
 Poses in parameters are 6 numbers ``[x, y, z, roll, pitch, yaw]`` (metres, radians,
 ``R = Rz(yaw) Ry(pitch) Rx(roll)``). ``desired_cMo`` / ``start_cMo`` give the target in the
@@ -45,17 +46,10 @@ camera frame (``cMo``), ``target_pose`` the target in the robot's ``world`` fram
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Twist
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
-from rclpy.exceptions import (InvalidParameterTypeException,
-                               InvalidParameterValueException)
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -66,92 +60,67 @@ from sphere_servo.core.targets import make_target
 from sphere_servo.nodes.conversions import (camera_info_from_intrinsics, header,
                                             image_from_array, pose_from_se3,
                                             stamp_from_seconds, twist_to_array)
+from sphere_servo.nodes.params import (Param, ParameterError, declare_all,
+                                       install_set_callback, run)
 from sphere_servo.sim.arm import CAMERA_FRAME, ArmModel, Status, pose_from_xyz_rpy
 
+DEPTH, IMAGE_DEPTH = 100, 30  # publisher history (messages)
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
 LEVELS = {Status.OK: DiagnosticStatus.OK, Status.SINGULARITY: DiagnosticStatus.WARN,
           Status.JOINT_LIMIT: DiagnosticStatus.WARN, Status.TIMEOUT: DiagnosticStatus.WARN}
 
 
-class ParameterError(ValueError):
-    """A parameter value is refused."""
-
-
-def _frange(lo, hi):
-    return [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
-
-
-# name: (default, description, range or None)
+PI = math.pi
+FIXED = dict(read_only=True)
 PARAMS = {
-    'clock_mode': ('realtime', "'realtime' (timer at camera_rate) or 'lockstep' (one period "
-                   'and one image per command)', None),
-    'camera_rate': (30.0, 'camera frame rate (Hz); the simulation step is 1/camera_rate',
-                    _frange(0.1, 1000.0)),
-    'camera.px': (600.0, 'focal length along u (px)', _frange(1.0, 1e5)),
-    'camera.py': (600.0, 'focal length along v (px)', _frange(1.0, 1e5)),
-    'camera.u0': (320.0, 'principal point u (px)', _frange(-1e5, 1e5)),
-    'camera.v0': (240.0, 'principal point v (px)', _frange(-1e5, 1e5)),
-    'camera.width': (640, 'image width (px)',
-                     [IntegerRange(from_value=1, to_value=8192, step=1)]),
-    'camera.height': (480, 'image height (px)',
-                      [IntegerRange(from_value=1, to_value=8192, step=1)]),
-    'hand_eye': ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'tool0Mc: camera optical frame in tool0, '
-                 '[x y z roll pitch yaw] (m, rad); identity looks out of the flange', None),
-    'start_mode': ('pose', "'pose': start = IK of start_cMo (seeded from the desired "
-                   "configuration); 'joints': start = start_joints", None),
-    'start_joints': ([0.0, -1.57, 1.57, -1.57, -1.57, 0.0], 'UR5 joint configuration (rad): '
-                     "start when start_mode = 'joints', IK seed of desired_cMo otherwise",
-                     None),
-    'start_cMo': ([0.07, 0.12, 0.56, -0.46, 0.40, -0.72], 'start pose of the target in the '
-                  'camera, [x y z roll pitch yaw]', None),
-    'desired_cMo': ([0.0, 0.0, 0.45, 0.0, 0.0, 0.0], 'desired pose of the target in the '
-                    'camera (cMo*), [x y z roll pitch yaw]', None),
-    'target.kind': ('special', "'special', 'cc' or 'balloon'", None),
-    'target.radius': (0.05, 'sphere radius r (m), special and cc', _frange(1e-4, 10.0)),
-    'target.axes': ([0.06, 0.055, 0.045], 'balloon ellipsoid semi-axes (m)', None),
-    'target_pose': ([0.5, 0.1, 0.05, math.pi, 0.0, -math.pi / 2], 'wMo: target in the robot '
-                    'world frame, [x y z roll pitch yaw]', None),
-    'target_frame': ('target', 'frame_id of the ground-truth camera pose', None),
-    'cmd_timeout': (0.5, 'watchdog: zero velocity after this long (s, sim time) without a '
-                    'command', _frange(0.0, 3600.0)),
-    'damping': (0.05, 'maximum damped-least-squares damping (applied at sigma_min = 0)',
-                _frange(0.0, 10.0)),
-    'singular_threshold': (0.04, 'sigma_min of the camera Jacobian under which damping and '
-                           'slow-down start', _frange(0.0, 10.0)),
-    'singular_stop': (0.01, 'sigma_min at which motion towards a singularity stops',
-                      _frange(0.0, 10.0)),
-    'velocity_scale': (1.0, 'fraction of the URDF joint velocity limits used',
-                       _frange(0.001, 1.0)),
-    'idle_republish_period': (0.5, 'lockstep: wall period (s) of re-publishing the last image '
-                              'until a command arrives', _frange(0.01, 60.0)),
-    'urdf_path': ('', "UR5 URDF; '' = find example-robot-data's", None),
+    'clock_mode': Param('realtime', "'realtime' (timer at camera_rate) or 'lockstep' (one "
+                        'period and one image per command)', choices=('realtime', 'lockstep'),
+                        **FIXED),
+    'camera_rate': Param(30.0, 'camera frame rate (Hz); the simulation step is 1/camera_rate',
+                         range=(0.1, 1000.0), **FIXED),
+    'camera.px': Param(600.0, 'focal length along u (px)', range=(1.0, 1e5), **FIXED),
+    'camera.py': Param(600.0, 'focal length along v (px)', range=(1.0, 1e5), **FIXED),
+    'camera.u0': Param(320.0, 'principal point u (px)', range=(-1e5, 1e5), **FIXED),
+    'camera.v0': Param(240.0, 'principal point v (px)', range=(-1e5, 1e5), **FIXED),
+    'camera.width': Param(640, 'image width (px)', range=(1, 8192), **FIXED),
+    'camera.height': Param(480, 'image height (px)', range=(1, 8192), **FIXED),
+    'hand_eye': Param([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'tool0Mc: camera optical frame in tool0, '
+                      '[x y z roll pitch yaw] (m, rad); identity looks out of the flange',
+                      size=6, **FIXED),
+    'start_mode': Param('pose', "'pose': start = IK of start_cMo (seeded from the desired "
+                        "configuration); 'joints': start = start_joints",
+                        choices=('pose', 'joints')),
+    'start_joints': Param([0.0, -1.57, 1.57, -1.57, -1.57, 0.0], 'UR5 joint configuration '
+                          "(rad): start when start_mode = 'joints', IK seed of desired_cMo "
+                          'otherwise', size=6),
+    'start_cMo': Param([0.07, 0.12, 0.56, -0.46, 0.40, -0.72], 'start pose of the target in '
+                       'the camera, [x y z roll pitch yaw]', size=6),
+    'desired_cMo': Param([0.0, 0.0, 0.45, 0.0, 0.0, 0.0], 'desired pose of the target in the '
+                         'camera (cMo*), [x y z roll pitch yaw]', size=6),
+    'target.kind': Param('special', "'special', 'cc' or 'balloon'",
+                         choices=('special', 'cc', 'balloon'), **FIXED),
+    'target.radius': Param(0.05, 'sphere radius r (m), special and cc', range=(1e-4, 10.0),
+                           **FIXED),
+    'target.axes': Param([0.06, 0.055, 0.045], 'balloon ellipsoid semi-axes (m)', size=3,
+                         positive=True, **FIXED),
+    'target_pose': Param([0.5, 0.1, 0.05, PI, 0.0, -PI / 2], 'wMo: target in the robot world '
+                         'frame, [x y z roll pitch yaw]', size=6, **FIXED),
+    'target_frame': Param('target', 'frame_id of the ground-truth camera pose', **FIXED),
+    'cmd_timeout': Param(0.5, 'watchdog: zero velocity after this long (s, sim time) without '
+                         'a command', range=(0.0, 3600.0), **FIXED),
+    'damping': Param(0.05, 'maximum damped-least-squares damping (applied at sigma_min = 0)',
+                     range=(0.0, 10.0), **FIXED),
+    'singular_threshold': Param(0.04, 'sigma_min of the camera Jacobian under which damping '
+                                'and slow-down start', range=(0.0, 10.0), **FIXED),
+    'singular_stop': Param(0.01, 'sigma_min at which motion towards a singularity stops',
+                           range=(0.0, 10.0), **FIXED),
+    'velocity_scale': Param(1.0, 'fraction of the URDF joint velocity limits used',
+                            range=(0.001, 1.0), **FIXED),
+    'idle_republish_period': Param(0.5, 'lockstep: wall period (s) of re-publishing the last '
+                                   'image until a command arrives', range=(0.01, 60.0),
+                                   **FIXED),
+    'urdf_path': Param('', "UR5 URDF; '' = find example-robot-data's", **FIXED),
 }
-ARRAY_SIZES = {'hand_eye': 6, 'start_joints': 6, 'start_cMo': 6, 'desired_cMo': 6,
-               'target.axes': 3, 'target_pose': 6}
-CHOICES = {'clock_mode': ('realtime', 'lockstep'), 'start_mode': ('pose', 'joints'),
-           'target.kind': ('special', 'cc', 'balloon')}
-
-
-def check_parameter(name: str, value) -> None:
-    """Raise :class:`ParameterError` with a clear message if ``value`` is refused."""
-    default, _, rng = PARAMS[name]
-    if name in CHOICES and value not in CHOICES[name]:
-        raise ParameterError(f'{name} must be one of {CHOICES[name]}, got {value!r}')
-    if name in ARRAY_SIZES:
-        arr = np.asarray(value, dtype=float)
-        if arr.shape != (ARRAY_SIZES[name],):
-            raise ParameterError(f'{name} needs {ARRAY_SIZES[name]} numbers, got {len(value)}')
-        if not np.all(np.isfinite(arr)):
-            raise ParameterError(f'{name} contains NaN or inf: {list(value)}')
-        if name == 'target.axes' and np.any(arr <= 0):
-            raise ParameterError(f'{name} must be > 0, got {list(value)}')
-    if isinstance(default, (int, float)):
-        if not math.isfinite(value):
-            raise ParameterError(f'{name} must be finite, got {value}')
-        if rng is not None:
-            lo, hi = rng[0].from_value, rng[0].to_value
-            if not lo <= value <= hi:
-                raise ParameterError(f'{name} must be in [{lo}, {hi}], got {value}')
 
 
 class ArmSim(Node):
@@ -159,20 +128,11 @@ class ArmSim(Node):
 
     def __init__(self, **kwargs):
         super().__init__('arm_sim', **kwargs)
-        for name, (default, desc, rng) in PARAMS.items():
-            d = ParameterDescriptor(description=desc)
-            if rng and isinstance(rng[0], FloatingPointRange):
-                d.floating_point_range = rng
-            elif rng:
-                d.integer_range = rng
-            self.declare_parameter(name, default, d)
-        self.p = {}
-        for name in PARAMS:
-            value = self.get_parameter(name).value
-            check_parameter(name, value)
-            self.p[name] = value
+        self.p = declare_all(self, PARAMS)
         self._setup()
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        # runtime changes: the poses and start_mode (read by the go_* services); the others
+        # are read-only
+        install_set_callback(self, PARAMS, self.p.__setitem__)
 
     # --- set-up ---------------------------------------------------------------------
     def _setup(self) -> None:
@@ -201,11 +161,13 @@ class ArmSim(Node):
         self.arm.q_start = q_start
         self.arm.reset()
 
-        self.pub_image = self.create_publisher(Image, 'camera/image_raw', 10)
-        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', 10)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', 10)
-        self.pub_status = self.create_publisher(DiagnosticStatus, 'arm_sim/status', 10)
+        # history deep enough that a recorder or a monitor falling behind for a second (a
+        # loaded machine) loses nothing: a reliable publisher drops what leaves its history
+        self.pub_image = self.create_publisher(Image, 'camera/image_raw', IMAGE_DEPTH)
+        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', DEPTH)
+        self.pub_joints = self.create_publisher(JointState, 'joint_states', DEPTH)
+        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', DEPTH)
+        self.pub_status = self.create_publisher(DiagnosticStatus, 'arm_sim/status', DEPTH)
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.create_subscription(Twist, 'camera/cmd_vel', self._on_cmd, 10)
         for name, cb in (('~/reset', self._srv_reset), ('~/go_start', self._srv_go_start),
@@ -237,21 +199,6 @@ class ArmSim(Node):
             raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '
                                  f'(IK residual {err:.3g}); change it or target_pose')
         return q
-
-    def _on_set_parameters(self, params) -> SetParametersResult:
-        """Runtime changes: poses and start_mode only (read by the go_* services)."""
-        live = {'start_cMo', 'desired_cMo', 'start_joints', 'start_mode'}
-        for prm in params:
-            if prm.name not in live:
-                return SetParametersResult(successful=False,
-                                           reason=f'{prm.name} is fixed at start; restart')
-            try:
-                check_parameter(prm.name, prm.value)
-            except (ParameterError, TypeError, ValueError) as e:
-                return SetParametersResult(successful=False, reason=str(e))
-        for prm in params:
-            self.p[prm.name] = prm.value
-        return SetParametersResult(successful=True)
 
     # --- command and time -----------------------------------------------------------
     def _on_cmd(self, msg: Twist) -> None:
@@ -353,21 +300,7 @@ class ArmSim(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = ArmSim()
-    except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
-            ValueError, TypeError, FileNotFoundError, ImportError) as e:
-        print(f'[arm_sim] refused to start: {e}', file=sys.stderr)
-        rclpy.try_shutdown()
-        sys.exit(2)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    run(ArmSim, 'arm_sim', args)
 
 
 if __name__ == '__main__':

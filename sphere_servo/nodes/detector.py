@@ -67,7 +67,7 @@ class DetectorNode(Node):
         target = make_target(self.p['target_kind'])
         self.detector = Detector.for_target(target)
         self.camera: CameraIntrinsics | None = None
-        self.pub = self.create_publisher(JointState, 'detector/measurement', 10)
+        self.pub = self.create_publisher(JointState, 'detector/measurement', 100)
         self.pub_overlay = self.create_publisher(Image, 'detector/overlay', 2)
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, 10)

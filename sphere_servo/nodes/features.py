@@ -73,7 +73,7 @@ class FeaturesNode(Node):
         self.kind = self.target.kind
         self.sets: dict = {}
         self.latest: JointState | None = None
-        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', 10)
+        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', 100)
                      for name in p['sets']}
         self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
         self.create_service(Trigger, '~/teach', self._srv_teach)

@@ -34,7 +34,8 @@ class Param:
     """One parameter: default, description, and constraints.
 
     range    (lo, hi) inclusive for numbers; choices: allowed strings; size: length of an
-    array parameter (its entries must be finite); read_only: cannot change after start.
+    array parameter (its entries must be finite; > 0 too with ``positive``); read_only:
+    cannot change after start.
     """
 
     default: object
@@ -43,6 +44,7 @@ class Param:
     choices: tuple | None = None
     size: int | None = None
     read_only: bool = False
+    positive: bool = False
 
     def descriptor(self) -> ParameterDescriptor:
         d = ParameterDescriptor(description=self.description, read_only=self.read_only)
@@ -72,6 +74,8 @@ def check(name: str, p: Param, value):
             raise ParameterError(f'{name} needs {p.size} numbers, got {len(value)}')
         if not np.all(np.isfinite(arr)):
             raise ParameterError(f'{name} contains NaN or inf: {list(value)}')
+        if p.positive and np.any(arr <= 0):
+            raise ParameterError(f'{name} must be > 0, got {list(value)}')
     if isinstance(p.default, (int, float)) and not isinstance(p.default, bool):
         if not math.isfinite(value):
             raise ParameterError(f'{name} must be finite, got {value}')
@@ -127,7 +131,7 @@ def run(node_factory, name: str, args=None) -> None:
     try:
         node = node_factory()
     except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
-            ValueError, TypeError, FileNotFoundError) as exc:
+            ValueError, TypeError, FileNotFoundError, ImportError) as exc:
         print(f'[{name}] refused to start: {exc}', file=sys.stderr)
         rclpy.try_shutdown()
         sys.exit(2)

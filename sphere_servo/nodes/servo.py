@@ -82,9 +82,9 @@ class ServoNode(Node):
                                     interaction=p['interaction'], v_max=p['v_max'],
                                     w_max=p['w_max'], tol=p['tol'])
         self.feature_set, self.timeout = p['feature_set'], p['timeout']
-        self.pub_twist = self.create_publisher(Twist, 'camera/cmd_vel', 10)
-        self.pub_stamped = self.create_publisher(TwistStamped, 'camera/cmd_vel_stamped', 10)
-        self.pub_state = self.create_publisher(DiagnosticStatus, 'servo/state', 10)
+        self.pub_twist = self.create_publisher(Twist, 'camera/cmd_vel', 100)
+        self.pub_stamped = self.create_publisher(TwistStamped, 'camera/cmd_vel_stamped', 100)
+        self.pub_state = self.create_publisher(DiagnosticStatus, 'servo/state', 100)
         self.create_subscription(JointState, f'features/{self.feature_set}', self._on_features,
                                  10)
         self.enabled = p['start_enabled']

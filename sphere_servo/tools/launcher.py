@@ -391,10 +391,8 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
     if record:
-        topics = launch.get('record_topics', [
-            'camera/image_raw', 'camera/camera_info', 'detector/measurement',
-            'features/s_n', 'camera/cmd_vel', 'camera/cmd_vel_stamped', 'servo/state',
-            'ground_truth/camera_pose', 'joint_states', 'arm_sim/status'])
+        from sphere_servo.tools.record import DEFAULT_TOPICS
+        topics = launch.get('record_topics', list(DEFAULT_TOPICS))
         extra['record'] = ['--output', record, '--topics', *topics]
     sup = None
     code = 0
