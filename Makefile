@@ -10,7 +10,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export PIP_CONFIG_FILE := /dev/null
 PYTEST_ARGS ?=
 
-.PHONY: venv test demo bench gallery clean
+.PHONY: venv test demo bench gallery paper study clean
 
 venv: $(STAMP)
 
@@ -31,6 +31,12 @@ bench: $(STAMP)
 
 gallery: $(STAMP)
 	$(PY) -m sphere_servo.tools.gallery
+
+paper: $(STAMP)
+	$(PY) -m sphere_servo.tools.paper
+
+study: $(STAMP)
+	$(PY) -m sphere_servo.tools.study
 
 clean:
 	rm -rf $(VENV) build install log
