@@ -145,7 +145,7 @@ def _intrinsics(camera) -> tuple[float, float, float, float]:
         except (AttributeError, TypeError, ValueError):
             raise ValueError(f'camera intrinsics lack a numeric {name!r}') from None
         vals.append(v)
-    if not all(np.isfinite(vals)):
+    if not all(map(math.isfinite, vals)):
         raise ValueError(f'camera intrinsics must be finite, got px, py, u0, v0 = {vals}')
     if vals[0] <= 0 or vals[1] <= 0:
         raise ValueError(f'focal lengths must be > 0, got px={vals[0]}, py={vals[1]}')
@@ -158,36 +158,64 @@ def fit_conic(xy: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     Returns the symmetric 3×3 conic in the input coordinates."""
     x = xy[:, 0].astype(np.float64)
     y = xy[:, 1].astype(np.float64)
-    mx, my = float(x.mean()), float(y.mean())
+    n = len(x)
+    mx, my = float(x.sum()) / n, float(y.sum()) / n
     x -= mx
     y -= my
-    sc = math.sqrt(2.0 / max(float(np.dot(x, x) + np.dot(y, y)) / len(x), 1e-300))
-    x *= sc
-    y *= sc
-    D = np.empty((len(x), 6))
-    D[:, 0] = x * x
-    D[:, 1] = x * y
-    D[:, 2] = y * y
-    D[:, 3] = x
-    D[:, 4] = y
-    D[:, 5] = 1.0
-    Dw = D if weights is None else D * weights[:, None]
-    _, V = np.linalg.eigh(Dw.T @ D)           # smallest eigenvector of the scatter matrix
-    a, b, c, d, e, f = V[:, 0].tolist()
-    Cn = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
-    T = np.array([[sc, 0, -sc * mx], [0, sc, -sc * my], [0, 0, 1.0]])
-    C = T.T @ Cn @ T
-    return C / np.linalg.norm(C)
+    sc = math.sqrt(2.0 / max(float(np.dot(x, x) + np.dot(y, y)) / n, 1e-300))
+    return _fit_conic_xy(x, y, 0.0, 0.0, sc, weights, mx, my)
+
+
+def _fit_conic_xy(x: np.ndarray, y: np.ndarray, mx: float, my: float, sc: float,
+                  weights: np.ndarray | None = None, ox: float = 0.0,
+                  oy: float = 0.0) -> np.ndarray:
+    """:func:`fit_conic` of the points ``(x + ox, y + oy)`` (float64 (N,) each), normalized
+    by ``(p − (mx, my))·sc`` (any centre inside the points and scale ≈ √2 / RMS radius
+    condition the scatter matrix as well as the exact centroid does: the detector passes its
+    coarse ellipse's). Unit Frobenius norm."""
+    D = np.empty((6, len(x)))
+    xs, ys = D[3], D[4]
+    np.subtract(x, mx, out=xs)
+    xs *= sc
+    np.subtract(y, my, out=ys)
+    ys *= sc
+    np.multiply(xs, xs, out=D[0])
+    np.multiply(xs, ys, out=D[1])
+    np.multiply(ys, ys, out=D[2])
+    D[5] = 1.0
+    S = (D if weights is None else D * weights) @ D.T
+    _, _, V = cv2.eigen(S)                 # descending: the last row is the smallest
+    a, b, c, d, e, f = V[5].tolist()
+    # back to the input coordinates: x' = sc·(x − mx'), with mx' = mx + ox
+    mx += ox
+    my += oy
+    s2 = sc * sc
+    A, B, Cc = a * s2, b * s2, c * s2
+    Dx = d * sc - 2.0 * A * mx - B * my
+    Ey = e * sc - 2.0 * Cc * my - B * mx
+    F = A * mx * mx + B * mx * my + Cc * my * my - sc * (d * mx + e * my) + f
+    B, Dx, Ey = 0.5 * B, 0.5 * Dx, 0.5 * Ey
+    nrm = math.sqrt(A * A + Cc * Cc + F * F + 2.0 * (B * B + Dx * Dx + Ey * Ey))
+    return np.array([[A, B, Dx], [B, Cc, Ey], [Dx, Ey, F]]) / nrm
+
+
+def _sampson_xy(C: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """:func:`sampson_distance` of the points (x, y) given as two (N,) arrays."""
+    (a, b, d), (_, c, e), (_, _, f) = C.tolist()
+    gx = a * x + b * y + d
+    gy = b * x + c * y + e
+    alg = gx * x + gy * y + d * x + e * y + f
+    gx *= gx
+    gy *= gy
+    gx += gy
+    np.sqrt(gx, out=gx)
+    gx *= 2.0
+    return alg / np.maximum(gx, 1e-300, out=gx)
 
 
 def sampson_distance(C: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """First-order geometric distance of (N, 2) points to the conic C (same units)."""
-    (a, b, d), (_, c, e), (_, _, f) = C.tolist()
-    x, y = xy[:, 0], xy[:, 1]
-    gx = a * x + b * y + d
-    gy = b * x + c * y + e
-    alg = gx * x + gy * y + (d * x + e * y + f)
-    return alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300)
+    return _sampson_xy(C, xy[:, 0], xy[:, 1])
 
 
 def ellipse_params(C: np.ndarray):
@@ -244,7 +272,7 @@ class Detector:
     def __init__(self, colors: dict | None = None, surface_marks=('P1', 'P2'), *,
                  min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
-                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 300,
+                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 150,
                  coarse_step: int = 4, mark_radius: float = float(np.radians(9.0))):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
@@ -306,7 +334,7 @@ class Detector:
             if rgb is not None and self._fills_frame(rgb):
                 reason = 'target too large for the image (the body fills the frame)'
             return Detection(False, reason, marks={n: Mark(n) for n in self.mark_names})
-        C_px, resid, n_pts, cut, thr = res
+        C_px, resid, n_pts, ep, cut, thr = res
         Kc = np.array([[px, 0, u0], [0, py, v0], [0, 0, 1.0]])
         C_n = Kc.T @ C_px @ Kc
         C_n = C_n / np.linalg.norm(C_n)
@@ -315,7 +343,6 @@ class Detector:
         except MeasurementError as exc:
             return Detection(False, f'fitted conic is not a sphere image: {exc}',
                              marks={n: Mark(n) for n in self.mark_names})
-        ep = ellipse_params(C_px)
         c, ax, ang = ep
         det = Detection(True, '', C_n, sphere, sphere.quality, resid,
                         ((float(c[0]), float(c[1])), (float(2 * ax[0]), float(2 * ax[1])),
@@ -400,6 +427,7 @@ class Detector:
         """``cv2.fitEllipse`` on float32 (N, 2) points, dropping the points far from the fit
         (a lump on the contour: clutter touching the sphere, the CC stick) until it is tight.
         Returns the conic (3×3, pixels) or None."""
+        x, y = pts[:, 0].astype(np.float64), pts[:, 1].astype(np.float64)
         for _ in range(rounds + 1):
             if len(pts) < max(6, min_keep):
                 return None
@@ -408,18 +436,29 @@ class Detector:
                     and math.isfinite(h) and w > 0.5 and h > 0.5):
                 return None
             C = _conic_from_rrect(cx, cy, w, h, a)
-            d = np.abs(sampson_distance(C, pts))
+            d = np.abs(_sampson_xy(C, x, y))
             k = len(d) // 2
             keep = d < max(tol_min, 4.5 * float(np.partition(d, k)[k]))
-            if keep.all():
+            if np.count_nonzero(keep) == len(keep):
                 break
-            pts = pts[keep]
+            pts, x, y = pts[keep], x[keep], y[keep]
         return C
+
+    _trig_cache: dict = {}
+
+    @classmethod
+    def _trig(cls, N: int) -> np.ndarray:
+        """(2, N): cos and sin of N angles evenly spaced on [0, 2π)."""
+        cs = cls._trig_cache.get(N)
+        if cs is None:
+            t = np.linspace(0.0, 2 * math.pi, N, endpoint=False)
+            cs = cls._trig_cache[N] = np.stack([np.cos(t), np.sin(t)])
+        return cs
 
     def _fit_blob(self, free: np.ndarray, img, rgb, s: int, W: int, H: int):
         """Sub-pixel ellipse from the free (not on the border) contour points of a blob,
         (N, 2) float32 full-resolution pixels (found at step ``s``). Returns
-        ``(C_px, rms_px, n_points)`` or a reason string.
+        ``(C_px, rms_px, n_points, ellipse_params)`` or a reason string.
 
         Along the coarse ellipse's outward normals (points on the image only), V is sampled
         (bilinear) at unit steps over ±(2s + 4) px; on each profile the edge is the largest
@@ -429,7 +468,7 @@ class Detector:
         ``e = Σ_j c(o_j) − (M + ½)``, ``c = (I − I_out)/(S − I_out)`` clipped to [0, 1]
         (exact for a box-filtered or blurred straight edge); the inside level S is
         extrapolated from 2 and 3 px inside, since the body's shade changes quickly near
-        the limb."""
+        the limb. (Written for speed: one remap, flat gathers, float scalars.)"""
         n0 = len(free)
         if n0 > 400:
             free = free[np.linspace(0, n0 - 1, 400).astype(int)]
@@ -440,92 +479,125 @@ class Detector:
         (cx, cy), (a0, a1), ang = ep[0].tolist(), ep[1].tolist(), ep[2]
         per = math.pi * (3 * (a0 + a1) - math.sqrt((3 * a0 + a1) * (a0 + 3 * a1)))
         N = int(min(max(per / 1.5, 24), self.max_edge_points))
-        t = np.linspace(0.0, 2 * math.pi, N, endpoint=False)
-        ct, st = np.cos(t), np.sin(t)
         ca, sa = math.cos(ang), math.sin(ang)
-        px_ = cx + (a0 * ca) * ct - (a1 * sa) * st
-        py_ = cy + (a0 * sa) * ct + (a1 * ca) * st
-        nx = (ca / a0) * ct - (sa / a1) * st
-        ny = (sa / a0) * ct + (ca / a1) * st
+        # rows: point x, y (about the centre) and normal x, y (unnormalized)
+        G = np.array([[a0 * ca, -a1 * sa], [a0 * sa, a1 * ca],
+                      [ca / a0, -sa / a1], [sa / a0, ca / a1]]) @ self._trig(N)
+        px_, py_, nx, ny = G
+        px_ += cx
+        py_ += cy
         nn = np.sqrt(nx * nx + ny * ny)
         nx /= nn
         ny /= nn
         L = 2 * s + 4
         hx, hy = 0.5 * (W - 1), 0.5 * (H - 1)
-        ok = ((np.abs(px_ - hx) + L * np.abs(nx) <= hx - 1.0)
-              & (np.abs(py_ - hy) + L * np.abs(ny) <= hy - 1.0))
-        px_, py_, nx, ny = px_[ok], py_[ok], nx[ok], ny[ok]
-        if len(px_) < 10:
-            return 'too few clean edge points'
+        bw = math.hypot(a0 * ca, a1 * sa)           # half-extents of the ellipse's box
+        bh = math.hypot(a0 * sa, a1 * ca)
+        if abs(cx - hx) + bw + L > hx - 1.0 or abs(cy - hy) + bh + L > hy - 1.0:
+            ok = ((np.abs(px_ - hx) + L * np.abs(nx) <= hx - 1.0)
+                  & (np.abs(py_ - hy) + L * np.abs(ny) <= hy - 1.0))
+            px_, py_, nx, ny = px_[ok], py_[ok], nx[ok], ny[ok]
+            N = len(px_)
+            if N < 10:
+                return 'too few clean edge points'
+        P = 2 * L + 1
         offs = np.arange(-L, L + 1, dtype=np.float32)
-        mx = px_.astype(np.float32)[:, None] + offs[None, :] * nx.astype(np.float32)[:, None]
-        my = py_.astype(np.float32)[:, None] + offs[None, :] * ny.astype(np.float32)[:, None]
-        prof3 = cv2.remap(img, mx, my, cv2.INTER_LINEAR)
-        prof = (np.maximum(np.maximum(prof3[..., 0], prof3[..., 1]), prof3[..., 2])
-                if prof3.ndim == 3 else prof3)
-        prof = prof.astype(np.float32)
+        mx = px_.astype(np.float32)[:, None] + offs * nx.astype(np.float32)[:, None]
+        my = py_.astype(np.float32)[:, None] + offs * ny.astype(np.float32)[:, None]
+        prof3 = cv2.remap(img, mx.reshape(1, -1), my.reshape(1, -1), cv2.INTER_LINEAR)
         K, M = self.K, self.K + 1
-        # the edge lies between samples j and j + 1 where V falls most
-        drop = prof[:, :-1] - prof[:, 1:]
-        j = np.argmax(drop * self._drop_weight(L), axis=1)
-        j = np.clip(j, M, 2 * L - K)                  # the window must fit in the profile
-        r = np.arange(len(j))[:, None]
-        idx = j[:, None] + np.arange(-M, K + 1)[None, :]
-        if prof3.ndim == 3:
+        color = prof3.ndim == 3
+        if color:
+            prof3 = prof3.reshape(N, P, 3)
+            prof = np.maximum(np.maximum(prof3[..., 0], prof3[..., 1]), prof3[..., 2])
+        else:
+            prof = prof3.reshape(N, P)
+        prof = prof.astype(np.float32)
+        # the edge lies between samples j and j + 1 where V falls most (the window
+        # j − M … j + K must fit in the profile)
+        drop = prof[:, M:P - K] - prof[:, M + 1:P - K + 1]
+        drop *= self._drop_weight(L)[:, M:P - K]
+        jj = drop.argmax(axis=1)
+        jj += M
+        jf = jj + np.arange(0, N * P, P)            # flat index of sample j
+        if color:
             # a mixed pixel's V = max(R, G, B) is not linear in its coverage when the
             # background's largest channel is not the body's: measure the step in the one
             # channel with the largest inside − outside contrast (a mark at the limb is as
             # bright as the body in its own channel)
-            w3 = prof3[r, idx].astype(np.float32)            # (N, M + K + 1, 3)
-            if rgb is not img:
-                w3 = w3[..., ::-1]             # bgr8: ties broken as for rgb8
-            ch = np.argmax(w3[:, M - 1] - w3[:, -1], axis=1)
-            win = w3[r[:, 0], :, ch]
+            flat3 = prof3.reshape(-1, 3)
+            dc = flat3[jf - 1].astype(np.int16) - flat3[jf + K]
+            if rgb is not img:                 # bgr8: ties broken as for rgb8
+                ch = 2 - dc[:, ::-1].argmax(axis=1)
+            else:
+                ch = dc.argmax(axis=1)
+            win = prof3.reshape(-1)[(jf * 3 + ch)[:, None] + np.arange(-6, 3 * K + 1, 3)]
         else:
-            win = prof[r, idx]
+            win = prof.reshape(-1)[jf[:, None] + np.arange(-2, K + 1)]
+        # win: samples j − 2 … j + K in the chosen channel
+        win = win.astype(np.float32)
+        i3, i2 = win[:, 0], win[:, 1]
         i_out = 0.5 * (win[:, -1] + win[:, -2])
-        i2, i3 = win[:, M - 1], win[:, M - 2]
         contrast = i2 - i_out
-        k = len(contrast) // 2
+        k = N // 2
         med = float(np.partition(contrast, k)[k])
         if med < self.min_contrast:
             return f'blob contrast {med:.0f} < {self.min_contrast:.0f}'
-        o = np.arange(-M, K + 1, dtype=np.float32)[None, :]
-        S = i2[:, None] + (o + 1.0) * (i2 - i3)[:, None]
-        cov = np.minimum(np.maximum((win - i_out[:, None])
-                                    / np.maximum(S - i_out[:, None], 1e-6), 0.0), 1.0)
-        cov[:, :M] = 1.0                      # 1 px inside and beyond: body
-        e = cov.sum(axis=1) - (M + 0.5) + (j - L)    # offset from the ellipse point
-        good = (contrast > 0.5 * self.min_contrast) & (np.abs(e - (j - L)) < 2.0)
-        if prof3.ndim == 3:
+        # coverage of the samples j … j + K; the M samples inside count 1 each
+        o1 = self._o1(K)
+        S = (i2 - i3)[:, None] * o1
+        S += i2[:, None]
+        S -= i_out[:, None]
+        np.maximum(S, 1e-6, out=S)
+        cov = win[:, 2:] - i_out[:, None]
+        cov /= S
+        np.clip(cov, 0.0, 1.0, out=cov)
+        csum = cov.sum(axis=1)
+        good = (contrast > 0.5 * self.min_contrast) & (csum < 2.5)
+        if color:
             # the edge is the body's only where the inside (M px in) is body-coloured
-            body = self._is_body(w3[:, 0])
-            if body.sum() < 0.5 * len(body):
+            body = self._is_body(flat3[jf - M], bgr=rgb is not img)
+            if np.count_nonzero(body) < 0.5 * N:
                 return 'blob is not body-coloured'
             good &= body
-        ex = (px_ + e * nx)[good]
-        ey = (py_ + e * ny)[good]
-        if len(ex) < 10:
+        e = csum + (jj - (L + 0.5))                 # offset from the ellipse point
+        e = e[good]
+        if len(e) < 10:
             return 'too few clean edge points'
-        edge = np.column_stack([ex, ey])
-        C = fit_conic(edge)
+        ex = px_[good] + e * nx[good]
+        ey = py_[good] + e * ny[good]
+        sc = 2.0 / math.sqrt(a0 * a0 + a1 * a1)     # Hartley scale of the coarse ellipse
+        C = _fit_conic_xy(ex, ey, cx, cy, sc)
         for _ in range(3):
-            d = sampson_distance(C, edge)
+            d = _sampson_xy(C, ex, ey)
             k = len(d) // 2
             med = float(np.partition(d, k)[k])
             ad = np.abs(d - med)
             sigma = 1.4826 * float(np.partition(ad, k)[k])
             keep = ad < max(3.0 * sigma, 0.3)
-            if keep.sum() < 10:
+            nk = np.count_nonzero(keep)
+            if nk < 10:
                 return 'too few clean edge points'
-            if keep.all():
+            if nk == len(keep):
                 break
-            edge = edge[keep]
-            C = fit_conic(edge)
-        if ellipse_params(C) is None:
+            ex, ey = ex[keep], ey[keep]
+            C = _fit_conic_xy(ex, ey, cx, cy, sc)
+        else:
+            d = _sampson_xy(C, ex, ey)
+        ep = ellipse_params(C)
+        if ep is None:
             return 'blob is not elliptical'
-        rms = float(np.sqrt(np.mean(sampson_distance(C, edge) ** 2)))
-        return C, rms, len(edge)
+        rms = math.sqrt(float(d @ d) / len(d))
+        return C, rms, len(d), ep
+
+    _o1_cache: dict = {}
+
+    @classmethod
+    def _o1(cls, K: int) -> np.ndarray:
+        o = cls._o1_cache.get(K)
+        if o is None:
+            o = cls._o1_cache[K] = np.arange(1, K + 2, dtype=np.float32)[None, :]
+        return o
 
     _dw_cache: dict = {}
 
