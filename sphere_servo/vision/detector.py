@@ -251,6 +251,16 @@ def _conic_from_rrect(cx: float, cy: float, w: float, h: float, angle_deg: float
     return np.array([[A00, A01, g0], [A01, A11, g1], [g0, g1, -(g0 * cx + g1 * cy) - 1.0]])
 
 
+def _chroma_test(c: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(Q, w)`` such that an rgb row ``p`` has its chromaticity ``p/Σp`` within ``tol`` of
+    ``c`` iff ``((p @ Q)² @ w) < 0``: ``p @ Q = (p − c·Σp, Σp)`` and ``w = (1, 1, 1, −tol²)``
+    (``|p − c·Σp|² < tol²·(Σp)²``; one matrix product instead of a division per channel)."""
+    Q = np.empty((3, 4), np.float32)
+    Q[:, :3] = np.eye(3) - np.asarray(c, float)[None, :]
+    Q[:, 3] = 1.0
+    return Q, np.array([1.0, 1.0, 1.0, -tol * tol], np.float32)
+
+
 # --- detector ------------------------------------------------------------------------------
 class Detector:
     """Sphere + marks detector, configured by the colours of the body and the marks.
@@ -289,6 +299,7 @@ class Detector:
         self.coarse_step = max(1, int(coarse_step))
         self._chroma = {k: self._to_chroma(np.asarray(v, float)) for k, v in
                         self.colors.items()}
+        self._body_test = _chroma_test(self._chroma['body'], 1.5 * self.body_chroma_tol)
         self.cos_mark = float(np.cos(mark_radius))
         self.limb_px = 1.5       # a cap's (grown) pixels this close to the silhouette (px):
         #                          the cap is treated as cut by the limb
@@ -373,16 +384,14 @@ class Detector:
         """Threshold ``V = max(R, G, B)`` of the image subsampled by ``s`` (Otsu), take the
         largest outer contours and fit each until one is the sphere. Returns
         ``(C_px, rms_px, n_points, cut_by_border, threshold)`` or a reason string."""
-        if s > 1:
-            small = cv2.resize(img, (W // s, H // s), interpolation=cv2.INTER_NEAREST)
+        hs, ws = H // s, W // s
+        if img.ndim == 3:
+            # V of the pixels (s·i, s·j): rows by a strided view, columns as the first
+            # pixel of each group of s (numpy: no thread hand-offs for a 160×120 image)
+            g = img[:hs * s:s, :ws * s].reshape(hs, ws, 3 * s)
+            Vs = np.maximum(np.maximum(g[..., 0], g[..., 1]), g[..., 2])
         else:
-            small = img
-        if small.ndim == 3:
-            c0, c1, c2 = cv2.split(small)
-            Vs = cv2.max(cv2.max(c0, c1), c2)
-        else:
-            Vs = small
-        hs, ws = Vs.shape
+            Vs = np.ascontiguousarray(img[:hs * s:s, :ws * s:s])
         thr, mask = cv2.threshold(Vs, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
@@ -394,24 +403,33 @@ class Detector:
                 reason = f'largest blob too small ({area:.0f} px < {self.min_area_px:.0f})'
                 break
             pts = cnt.reshape(-1, 2)
-            on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= ws - 1) | (pts[:, 1] <= 0)
-                         | (pts[:, 1] >= hs - 1))
-            cut = bool(on_border.any())
-            free = pts[~on_border]
+            bx, by, bw, bh = cv2.boundingRect(cnt)
+            cut = bx <= 0 or by <= 0 or bx + bw >= ws or by + bh >= hs
+            if cut:
+                on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= ws - 1) | (pts[:, 1] <= 0)
+                             | (pts[:, 1] >= hs - 1))
+                free = pts[~on_border]
+            else:
+                free = pts
             if len(free) < 8 or len(free) < 0.3 * len(pts):
                 reason = ('target too large for the image (too little of its contour is '
                           'inside)' if cut else 'blob too small')
                 continue
-            if small.ndim == 3:
+            if img.ndim == 3:
                 # keep the contour points whose inside (2 px towards the blob's centre) is
                 # body-coloured: a bright clutter shape or a mark merged with the sphere
                 # must not pull the coarse ellipse
-                f = free.astype(np.float64)
-                dv = f.mean(axis=0) - f
-                dn = np.sqrt(dv[:, 0] ** 2 + dv[:, 1] ** 2)
-                qi = (f + 2.0 * dv / np.maximum(dn, 1e-9)[:, None] + 0.5).astype(int)
-                body = self._is_body(small[qi[:, 1], qi[:, 0]], bgr=rgb is not img)
-                if body.sum() < max(8, 0.3 * len(free)):
+                f = free.astype(np.float32)
+                dv = f.sum(axis=0) / len(f) - f
+                dn = np.hypot(dv[:, 0], dv[:, 1])
+                np.maximum(dn, 1e-9, out=dn)
+                dv *= (2.0 / dn)[:, None]
+                dv += f
+                dv += 0.5
+                qi = dv.astype(np.intp)
+                qi *= s
+                body = self._is_body(img[qi[:, 1], qi[:, 0]], bgr=rgb is not img)
+                if np.count_nonzero(body) < max(8, 0.3 * len(free)):
                     reason = 'blob is not body-coloured'
                     continue
                 free = free[body]
@@ -431,7 +449,7 @@ class Detector:
         for _ in range(rounds + 1):
             if len(pts) < max(6, min_keep):
                 return None
-            (cx, cy), (w, h), a = cv2.fitEllipse(pts)
+            (cx, cy), (w, h), a = cv2.fitEllipseDirect(pts)
             if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(w)
                     and math.isfinite(h) and w > 0.5 and h > 0.5):
                 return None
@@ -622,12 +640,10 @@ class Detector:
     def _is_body(self, pix: np.ndarray, bgr: bool = False) -> np.ndarray:
         """(N,) bool: the (N, 3) rgb (bgr if ``bgr``) pixels have the body's chromaticity
         (within 1.5 ``body_chroma_tol``)."""
-        pix = pix.astype(np.float32)
-        r, g, b = (pix[:, 2], pix[:, 1], pix[:, 0]) if bgr else (pix[:, 0], pix[:, 1], pix[:, 2])
-        tot = np.maximum(r + g + b, 1e-6)
-        c0, c1, c2 = self._chroma['body'].tolist()
-        d2 = (r / tot - c0) ** 2 + (g / tot - c1) ** 2 + (b / tot - c2) ** 2
-        return d2 < (1.5 * self.body_chroma_tol) ** 2
+        Q, w = self._body_test
+        y = pix.astype(np.float32) @ (Q[::-1] if bgr else Q)
+        y *= y
+        return (y @ w) < 0.0
 
     def _marks(self, img, encoding, rgb, thr, sphere, intr, ep, C_px) -> dict:
         marks = {n: Mark(n) for n in self.mark_names}
