@@ -124,3 +124,19 @@ def test_bad_target_radius_is_refused(radius):
 def test_camera_inside_the_sphere_is_an_error():
     with pytest.raises(MeasurementError, match='inside'):
         observe(pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.01])), special_sphere())
+
+
+def test_fast_linalg_equals_numpy_and_reports_singular():
+    from sphere_servo.core import linalg
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        A = rng.normal(size=(6, 6))
+        b = rng.normal(size=6)
+        assert np.allclose(linalg.solve(A, b), np.linalg.solve(A, b), rtol=1e-12, atol=1e-12)
+        S = rng.normal(size=(3, 3))
+        S = S + S.T
+        w, V = linalg.eigh(S)
+        w2, _ = np.linalg.eigh(S)
+        assert np.allclose(w, w2) and np.allclose(S @ V, V * w)
+    with pytest.raises(np.linalg.LinAlgError):
+        linalg.solve(np.zeros((6, 6)), np.ones(6))

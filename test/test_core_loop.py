@@ -134,3 +134,12 @@ def test_vector_law_equals_the_observation_law(name, interaction):
     assert np.allclose(a.v_c, b.v_c, atol=1e-12) and a.saturated == b.saturated
     with pytest.raises(ValueError, match='supports'):
         VectorController('s_cc', target.radius)
+
+
+def test_loop_reports_a_target_lost_at_the_first_step():
+    """A start from which the marks cannot be seen ends the run with a reason, not a crash."""
+    from core_poses import camera_at
+    res = run_loop(special_sphere(), camera_at([0.0, 0.0, 0.5]), CMO_DESIRED, 's_n')
+    assert not res.converged and res.iterations == 0
+    assert res.reason.startswith('target lost') and 'hidden' in res.reason
+    assert res.e.shape == (0, 6) and res.v.shape == (0, 6)

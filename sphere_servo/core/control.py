@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import linalg
 from .features import FeatureSet, STFeatures, SnFeatures, check_radius
 from .geometry import GeometryError
 from .measurement import Observation
@@ -53,7 +54,7 @@ class AdaptiveGain:
         return d * np.exp(-self.slope_0 * x / d) + self.lambda_inf
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class ControlOutput:
     """One step of the law: twist (6,), error (n,), gain used, ‖e‖₂, converged flag."""
 
@@ -67,6 +68,8 @@ class ControlOutput:
 
 def saturate(v_c: np.ndarray, v_max: float, w_max: float) -> tuple[np.ndarray, bool]:
     """Scale ``v_c`` uniformly so ``‖v‖ ≤ v_max`` and ``‖ω‖ ≤ w_max`` (direction kept)."""
+    if v_max == math.inf and w_max == math.inf:
+        return v_c, False
     nv, nw = math.sqrt(float(v_c[:3] @ v_c[:3])), math.sqrt(float(v_c[3:] @ v_c[3:]))
     k = min(1.0, v_max / nv if nv > 0 else np.inf, w_max / nw if nw > 0 else np.inf)
     return (v_c * k, True) if k < 1.0 else (v_c, False)
@@ -111,7 +114,7 @@ class _Law:
         lam = self.lam(e)
         try:
             if L.shape[0] == L.shape[1]:
-                v_c = -lam * np.linalg.solve(L, e)
+                v_c = -lam * linalg.solve(L, e)
             else:
                 v_c = -lam * (np.linalg.pinv(L) @ e)
         except np.linalg.LinAlgError as exc:

@@ -96,10 +96,11 @@ class SnFeatures(FeatureSet):
     @staticmethod
     def interaction_from(s: np.ndarray, r_hat: float) -> np.ndarray:
         """``L_sn`` (6×6) from a feature vector ``s = (s_n,t, θu)`` (eq. 6)."""
-        r_hat = check_radius(r_hat)
+        k = -1.0 / check_radius(r_hat)
+        x, y, z = (float(v) for v in s[:3])
         L = np.zeros((6, 6))
-        L[0, 0] = L[1, 1] = L[2, 2] = -1.0 / r_hat
-        L[:3, 3:] = skew(s[:3])
+        L[:3] = [[k, 0.0, 0.0, 0.0, -z, y], [0.0, k, 0.0, z, 0.0, -x],
+                 [0.0, 0.0, k, -y, x, 0.0]]
         L[3:, 3:] = L_omega(s[3:], +1.0)
         return L
 

@@ -73,17 +73,18 @@ def L_omega(thetau: Vec3, sign: float = +1.0) -> Mat3:
     this convention). ``sign = −1``: a rotation multiplied on the left (the ζ rows of s_cc).
     Equals Pinocchio's ``Jlog3`` for ``sign = +1``.
     """
-    thetau = np.asarray(thetau, dtype=float)
-    theta = math.sqrt(float(thetau @ thetau))
+    x, y, z = (float(v) for v in thetau)
+    theta = math.sqrt(x * x + y * y + z * z)
     if theta < 1e-12:
         return np.eye(3)
-    ux = skew(thetau / theta)
-    L = (1.0 - sinc(theta) / sinc(theta / 2.0) ** 2) * (ux @ ux)
-    L += sign * (theta / 2.0) * ux
-    L[0, 0] += 1.0
-    L[1, 1] += 1.0
-    L[2, 2] += 1.0
-    return L
+    x, y, z = x / theta, y / theta, z / theta
+    # [u]×² = u uᵀ − I for a unit u:  L = (1 − c) I + c u uᵀ + a [u]×
+    a = sign * theta / 2.0
+    c = 1.0 - sinc(theta) / sinc(theta / 2.0) ** 2
+    d = 1.0 - c
+    return np.array([[d + c * x * x, c * x * y - a * z, c * x * z + a * y],
+                     [c * x * y + a * z, d + c * y * y, c * y * z - a * x],
+                     [c * x * z - a * y, c * y * z + a * x, d + c * z * z]])
 
 
 def integrate_camera(wMc: pin.SE3, v_c: Twist, dt: float) -> pin.SE3:

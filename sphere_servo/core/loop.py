@@ -125,7 +125,7 @@ def run_loop(target: Target, cMo_start: pin.SE3, cMo_desired: pin.SE3,
     n = len(E)
     return LoopResult(
         feature_set=feature_set, converged=converged, reason=reason, iterations=n,
-        t=np.array(t), s=np.array(S).reshape(n, -1), e=np.array(E).reshape(n, -1),
+        t=np.array(t), s=np.array(S).reshape(n, fs.size), e=np.array(E).reshape(n, fs.size),
         v=np.array(V).reshape(n, 6), oMc=np.array(poses), b=np.array(B).reshape(n, 3),
         q={k: np.array(v) for k, v in Q.items()},
         in_view=np.array(in_view) if camera is not None else None,

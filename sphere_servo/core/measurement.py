@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import pinocchio as pin
 
-from .geometry import GeometryError, cross3, normalize, require_finite
+from . import linalg
+from .geometry import GeometryError, normalize, require_finite
 from .targets import CC, SPECIAL, Target
 
 Vec3 = np.ndarray
@@ -42,7 +44,7 @@ class SphereMeasurement:
     r_delta: float
     quality: float = 0.0
 
-    @property
+    @cached_property
     def s_nt(self) -> Vec3:
         """``s_n,t = b / r_δ = O / r`` (eq. 5)."""
         return self.b / self.r_delta
@@ -79,17 +81,17 @@ def sphere_from_conic(C: np.ndarray) -> SphereMeasurement:
     C = np.asarray(C, dtype=float)
     if C.shape != (3, 3):
         raise MeasurementError(f'conic must be 3×3, got shape {C.shape}')
-    if not np.isfinite(C).all():
+    if not math.isfinite(C.sum()):
         raise MeasurementError(f'conic contains NaN or inf: {C!r}')
-    w, V = np.linalg.eigh(0.5 * (C + C.T))  # ascending eigenvalues
+    w, V = linalg.eigh(C + C.T)  # ascending eigenvalues (scale does not matter)
     w0, w1, w2 = w.tolist()
     eps = 1e-12 * max(abs(w0), abs(w2))
     if eps == 0.0:
         raise MeasurementError('degenerate conic: all zeros')
     if w2 > eps and w1 < -eps:       # one positive: b bᵀ − cos²θ I as is
-        lam1, o1, o2, b = w2, w0, w1, V[:, 2]
+        lam1, o1, o2, b = w2, w0, w1, V[:, 2].copy()  # a contiguous copy of the column
     elif w0 < -eps and w1 > eps:     # one negative: the sign is flipped
-        lam1, o1, o2, b = -w0, -w1, -w2, V[:, 0]
+        lam1, o1, o2, b = -w0, -w1, -w2, V[:, 0].copy()
     else:
         raise MeasurementError(f'conic is not the image of a sphere (eigenvalues {w})')
     lam2 = 0.5 * (o1 + o2)
@@ -176,10 +178,21 @@ def P3_over_r(sphere: SphereMeasurement, P1r: Vec3, q3: Vec3) -> Vec3:
     return rho * q3
 
 
+def _unit(x: float, y: float, z: float, what: str) -> tuple[float, float, float]:
+    n = math.sqrt(x * x + y * y + z * z)
+    if not 1e-12 < n < math.inf:
+        raise GeometryError(f'cannot normalize {what}: norm is {n}')
+    return x / n, y / n, z / n
+
+
 def _rot_from_r3_r2(r3: Vec3, a: Vec3) -> Mat3:
-    r3 = normalize(r3, 'r3')
-    r2 = normalize(a - (a @ r3) * r3, 'r2 (marks aligned with the centre)')
-    return np.array([cross3(r2, r3), r2, r3]).T
+    """``[r1 r2 r3]`` with ``r3 = n(r3)``, ``r2 = n(a − (aᵀr3) r3)``, ``r1 = r2 × r3`` (scalar
+    arithmetic: this runs in every control step)."""
+    x, y, z = _unit(*r3.tolist(), 'r3')
+    ax, ay, az = a.tolist()
+    d = ax * x + ay * y + az * z
+    u, v, w = _unit(ax - d * x, ay - d * y, az - d * z, 'r2 (marks aligned with the centre)')
+    return np.array([[v * z - w * y, u, x], [w * x - u * z, v, y], [u * y - v * x, w, z]])
 
 
 def cRo_special(sphere: SphereMeasurement, q1: Vec3, q2: Vec3) -> Mat3:
