@@ -307,6 +307,14 @@ class Detector:
         # (3, 2): rgb → (a, b) with rgb ≈ a·mark + b·body (least squares)
         self._unmix = {k: np.linalg.pinv(np.column_stack([np.asarray(v, float), body])).T
                        for k, v in self.colors.items() if k != 'body'}
+        for k, U in self._unmix.items():        # columns a and a + b: α = a / (a + b)
+            U[:, 1] += U[:, 0]
+        # all marks' chromaticity tests in one product: (3, 4·n) and block weights (4·n, n)
+        tests = [_chroma_test(self._chroma[k], self.chroma_tol) for k in self.mark_names]
+        self._mark_Q = np.hstack([Q for Q, _ in tests]) if tests else np.zeros((3, 0), np.float32)
+        self._mark_w = np.zeros((4 * len(tests), len(tests)), np.float32)
+        for i, (_, w) in enumerate(tests):
+            self._mark_w[4 * i:4 * i + 4, i] = w
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'Detector':
@@ -651,82 +659,93 @@ class Detector:
             return marks
         px, py, u0, v0 = intr
         H, W = img.shape[:2]
-        c, ax, _ = ep
+        (ecx, ecy), ax = ep[0].tolist(), ep[1].tolist()
         # the CC tip can lie outside the disc; surface marks cannot
         off_surface = any(n not in self.surface_marks for n in self.mark_names)
-        rad = (1.7 if off_surface else 1.0) * float(np.max(ax)) + 3
-        x0, x1 = max(0, int(c[0] - rad)), min(W, int(c[0] + rad) + 1)
-        y0, y1 = max(0, int(c[1] - rad)), min(H, int(c[1] + rad) + 1)
+        rad = (1.7 if off_surface else 1.0) * max(ax) + 3
+        x0, x1 = max(0, int(ecx - rad)), min(W, int(ecx + rad) + 1)
+        y0, y1 = max(0, int(ecy - rad)), min(H, int(ecy + rad) + 1)
         if x0 >= x1 or y0 >= y1:
             return marks
         # one pass over the box: saturated (max − min ≥ 0.27 max, HSV S ≥ 69) and bright
         # enough (not the dark background) are the mark candidates
         hsv = cv2.cvtColor(img[y0:y1, x0:x1],
                            cv2.COLOR_RGB2HSV if encoding == 'rgb8' else cv2.COLOR_BGR2HSV)
-        cand = cv2.findNonZero(cv2.inRange(hsv, (0, 69, int(np.ceil(0.75 * thr))),
+        cand = cv2.findNonZero(cv2.inRange(hsv, (0, 69, math.ceil(0.75 * thr)),
                                            (255, 255, 255)))
         if cand is None:
             return marks
         cand = cand.reshape(-1, 2)
-        cx, cy = cand[:, 0], cand[:, 1]
         roi = rgb[y0:y1, x0:x1]
-        ch = self._to_chroma(roi[cy, cx].astype(np.float64))
-        for name in self.mark_names:
-            dd = ch - self._chroma[name]
-            sel = (dd[:, 0] ** 2 + dd[:, 1] ** 2 + dd[:, 2] ** 2) < self.chroma_tol ** 2
+        # (N, n_marks): chromaticity within chroma_tol of each mark's
+        y = roi[cand[:, 1], cand[:, 0]].astype(np.float32) @ self._mark_Q
+        y *= y
+        sel_all = (y @ self._mark_w) < 0.0
+        # inside of the silhouette: the sign of the conic at the ellipse's centre
+        (ca, cb, cd), (_, cc, ce), (_, _, cf) = C_px.tolist()
+        inside = 1.0 if (ca * ecx * ecx + 2 * cb * ecx * ecy + cc * ecy * ecy + 2 * cd * ecx
+                         + 2 * ce * ecy + cf) > 0 else -1.0
+        for i, name in enumerate(self.mark_names):
+            sel = sel_all[:, i]
             if not sel.any():
                 continue
-            sy, sx = cy[sel], cx[sel]
+            pts = cand[sel]
             # components on the selected pixels' box only
-            ly, lx = int(sy.min()), int(sx.min())
-            m = np.zeros((int(sy.max()) - ly + 1, int(sx.max()) - lx + 1), np.uint8)
-            m[sy - ly, sx - lx] = 1
-            nlab, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+            lx, ly, bw, bh = cv2.boundingRect(pts)
+            m = np.zeros((bh, bw), np.uint8)
+            ry, rx = pts[:, 1] - ly, pts[:, 0] - lx
+            m[ry, rx] = 1
+            nlab, lab, st, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
             if nlab < 2:
                 continue
-            st = stats[1:]
-            areas = st[:, cv2.CC_STAT_AREA]
-            b = int(np.argmax(areas))
-            # the largest blob and the pieces next to it (an occluder can split a mark)
-            bx, by, bw, bh = st[b, :4].tolist()
-            reach = max(bw, bh)
-            near = ((areas >= 0.05 * areas[b]) & (st[:, 0] <= bx + bw + reach)
-                    & (st[:, 0] + st[:, 2] >= bx - reach) & (st[:, 1] <= by + bh + reach)
-                    & (st[:, 1] + st[:, 3] >= by - reach))
-            lut = np.zeros(nlab, np.uint8)
-            lut[1:][near] = 1
-            sp = st[near]
-            bx, by = int(sp[:, 0].min()), int(sp[:, 1].min())
-            bx1 = int((sp[:, 0] + sp[:, 2]).max())
-            by1 = int((sp[:, 1] + sp[:, 3]).max())
-            # box in roi coordinates, grown by 2 px for the anti-aliased rim
-            gx0, gy0 = max(0, lx + bx - 2), max(0, ly + by - 2)
-            gx1 = min(roi.shape[1], lx + bx1 + 2)
-            gy1 = min(roi.shape[0], ly + by1 + 2)
-            comp = np.zeros((gy1 - gy0, gx1 - gx0), np.uint8)
-            oy, ox = ly + by - gy0, lx + bx - gx0
-            comp[oy:oy + by1 - by, ox:ox + bx1 - bx] = lut[lab[by:by1, bx:bx1]]
+            if nlab > 2:
+                st = st[1:]
+                areas = st[:, cv2.CC_STAT_AREA]
+                b = int(np.argmax(areas))
+                # the largest blob and the pieces next to it (an occluder can split a mark)
+                bx, by, bw, bh = st[b, :4].tolist()
+                reach = max(bw, bh)
+                near = ((areas >= 0.05 * areas[b]) & (st[:, 0] <= bx + bw + reach)
+                        & (st[:, 0] + st[:, 2] >= bx - reach) & (st[:, 1] <= by + bh + reach)
+                        & (st[:, 1] + st[:, 3] >= by - reach))
+                if not near.all():
+                    lut = np.zeros(nlab, bool)
+                    lut[1:] = near
+                    pts = pts[lut[lab[ry, rx]]]
             # a painted cap is convex in the image: fill its convex hull, so that a thin
-            # occluder (the CC stick lies across P1's cap) does not bias the centre
-            hull = cv2.convexHull(cv2.findNonZero(comp))
-            full = np.zeros_like(comp)
-            cv2.fillConvexPoly(full, hull, 1)
-            grown = cv2.dilate(full, _K3)
-            yy, xx = np.nonzero(grown)
-            u = (x0 + gx0) + xx.astype(np.float64)
-            v = (y0 + gy0) + yy.astype(np.float64)
+            # occluder (the CC stick lies across P1's cap) does not bias the centre; its
+            # box in roi coordinates, grown by 2 px for the anti-aliased rim
+            hull = cv2.convexHull(pts)
+            hx, hy, hw, hh = cv2.boundingRect(hull)
+            gx0, gy0 = max(0, hx - 2), max(0, hy - 2)
+            gx1 = min(roi.shape[1], hx + hw + 2)
+            gy1 = min(roi.shape[0], hy + hh + 2)
+            full = np.zeros((gy1 - gy0, gx1 - gx0), np.uint8)
+            cv2.fillConvexPoly(full, hull - np.array([gx0, gy0], np.int32), 1)
+            yy, xx = np.nonzero(cv2.dilate(full, _K3))
+            ox, oy = x0 + gx0, y0 + gy0
             rim = None
             if name in self.surface_marks:
                 # coverage by unmixing: pixel = a·shade·mark + b·shade·body, α = a/(a + b)
                 ab = roi[gy0 + yy, gx0 + xx].astype(np.float64) @ self._unmix[name]
-                alpha = np.clip(ab[:, 0] / np.maximum(ab[:, 0] + ab[:, 1], 1e-9), 0.0, 1.0)
+                alpha = ab[:, 0] / np.maximum(ab[:, 1], 1e-9)
+                np.clip(alpha, 0.0, 1.0, out=alpha)
                 inner = cv2.erode(full, _K3)[yy, xx] > 0
                 alpha[inner] = 1.0
-                dsil = np.abs(sampson_distance(C_px, np.column_stack([u, v])))
-                if float(dsil.min()) < self.limb_px:
-                    # (nearly) cut by the limb: the visible part's mean is biased; use the
-                    # boundary with the body, away from the silhouette
-                    rim = (~inner) & (alpha > 0.2) & (alpha < 0.8) & (dsil > self.limb_px + 1.0)
+                # (nearly) cut by the limb? The distance to the silhouette is concave inside
+                # it, so over the filled hull it is smallest at a vertex; the grown pixels are
+                # within 2 px of the hull: only a cap with a vertex within limb_px + 4 px
+                # (or outside) needs the per-pixel distances
+                hv = hull.reshape(-1, 2).astype(np.float64)
+                near_limb = (inside * _sampson_xy(C_px, hv[:, 0] + x0, hv[:, 1] + y0)).min() \
+                    < self.limb_px + 4.0
+                if near_limb:
+                    dsil = np.abs(_sampson_xy(C_px, xx + float(ox), yy + float(oy)))
+                    if float(dsil.min()) < self.limb_px:
+                        # the visible part's mean is biased; use the boundary with the body,
+                        # away from the silhouette
+                        rim = ((~inner) & (alpha > 0.2) & (alpha < 0.8)
+                               & (dsil > self.limb_px + 1.0))
             else:
                 # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
                 # with the background, whose chromaticity says nothing of coverage)
@@ -734,16 +753,17 @@ class Detector:
             area = float(alpha.sum())
             if area < self.min_mark_px:
                 continue
-            xn = (u - u0) / px
-            yn = (v - v0) / py
             if name in self.surface_marks:
+                xn = (xx + (ox - u0)) * (1.0 / px)
+                yn = (yy + (oy - v0)) * (1.0 / py)
                 res = self._cap_centre(sphere, xn, yn, alpha, rim)
                 if res is None:
                     marks[name] = Mark(name, area_px=area, partial=rim is not None)
                     continue
                 xy = res[0]
             else:
-                xy = self._ball_centre(u, v, alpha, (px, py, u0, v0))
+                xy = self._ball_centre(xx + float(ox), yy + float(oy), alpha,
+                                       (px, py, u0, v0))
                 if xy is None:
                     continue
             uv = np.array([px * xy[0] + u0, py * xy[1] + v0])
@@ -774,20 +794,40 @@ class Detector:
     @staticmethod
     def _on_sphere(sphere: SphereMeasurement, xn, yn):
         """Back-project normalized image points on the estimated sphere (eq. 11–12, units
-        of r): the unit surface normals (3, N), ‖x̄‖ (N,), ‖P‖/r (N,) and the cosine of the
-        viewing incidence (N,)."""
-        nrm = np.sqrt(xn * xn + yn * yn + 1.0)
-        qx, qy, qz = xn / nrm, yn / nrm, 1.0 / nrm
-        (bx, by, bz), rd = sphere.b.tolist(), sphere.r_delta
-        cphi = qx * bx + qy * by + qz * bz
-        rho = (cphi - np.sqrt(np.maximum(0.0, rd * rd - np.maximum(0.0, 1.0 - cphi * cphi)))) \
-            / rd
-        sx, sy, sz = sphere.s_nt.tolist()
-        nx, ny, nz = rho * qx - sx, rho * qy - sy, rho * qz - sz
-        nn = np.maximum(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
-        n = np.stack([nx / nn, ny / nn, nz / nn])
-        cos_i = -(n[0] * qx + n[1] * qy + n[2] * qz)
-        return n, nrm, rho, cos_i
+        of r). Returns ``(X, k, rho, nn, cos_i)``: ``X`` (3, N) = ``(x̄, 1)``, ``k`` = 1/‖x̄‖
+        (so ``q = k·X`` is the unit ray), ``rho`` = ‖P‖/r, ``nn`` = ‖ρq − s_n,t‖ (1 on the
+        sphere; less for a ray that misses it, which meets its closest point) and ``cos_i``
+        the cosine of the viewing incidence; the unit surface normal is
+        ``n = (ρq − s_n,t)/nn``. (Scalar rows: ``|q| = 1`` turns the 3-vector norms and
+        dot products into ``b·q`` and ``s·q``.)"""
+        X = np.empty((3, len(xn)))
+        X[0] = xn
+        X[1] = yn
+        X[2] = 1.0
+        k = X[0] * X[0]
+        k += X[1] * X[1]
+        k += 1.0
+        np.sqrt(k, out=k)
+        np.divide(1.0, k, out=k)
+        bq, sq = np.vstack([sphere.b, sphere.s_nt]) @ X
+        bq *= k
+        sq *= k
+        rd = sphere.r_delta
+        root = bq * bq
+        root += rd * rd - 1.0
+        np.maximum(root, 0.0, out=root)
+        np.sqrt(root, out=root)
+        rho = bq - root
+        rho *= 1.0 / rd
+        # ‖ρq − s‖² = ρ² − 2ρ s·q + ‖s‖²
+        ss = float(sphere.s_nt @ sphere.s_nt)
+        nn = rho * (rho - 2.0 * sq)
+        nn += ss
+        np.maximum(nn, 1e-24, out=nn)
+        np.sqrt(nn, out=nn)
+        cos_i = sq - rho
+        cos_i /= nn
+        return X, k, rho, nn, cos_i
 
     def _cap_centre(self, sphere: SphereMeasurement, xn, yn, w, rim=None):
         """Centre of a painted cap from its pixels (normalized coords, coverage ``w``).
@@ -805,44 +845,57 @@ class Detector:
 
         Returns ``(xy of s_n,t + m, m)`` or None when the centre cannot be measured (it
         faces away from the camera, or too little rim is visible)."""
-        n, nrm, rho, cos_i = self._on_sphere(sphere, xn, yn)
-        wa = w * rho * rho / (nrm ** 3 * np.maximum(cos_i, 0.1))
-        m = n @ wa
-        m /= max(float(np.sqrt(m @ m)), 1e-300)
+        X, k, rho, nn, cos_i = self._on_sphere(sphere, xn, yn)
+        s_nt = sphere.s_nt
+        # Σ wa·n with n = (ρ k X − s)/nn and wa = w ρ² k³ / max(cos i, 0.1)
+        c = k * k
+        c *= k
+        c *= w
+        c *= rho * rho
+        c /= np.maximum(cos_i, 0.1)
+        c /= nn
+        m = X @ (c * rho * k) - float(c.sum()) * s_nt
+        m /= max(math.sqrt(float(m @ m)), 1e-300)
         if rim is not None:
-            nb, cb = n[:, rim], np.maximum(cos_i[rim], 0.05)
-            if nb.shape[1] < 8:
+            if np.count_nonzero(rim) < 8:
                 return None
+            ir = 1.0 / nn[rim]
+            nb = X[:, rim] * (rho[rim] * k[rim] * ir) - s_nt[:, None] * ir
+            cb = np.maximum(cos_i[rim], 0.05)
             wb = cb * cb
             cosr = self.cos_mark
             for it in range(6):
                 # tangent basis (t1, t2) at m, then one weighted Gauss–Newton step
                 mx, my, mz = m.tolist()
-                t1 = np.array([0.0, -mz, my]) if abs(mx) < 0.9 else np.array([mz, 0.0, -mx])
-                t1 /= math.sqrt(float(t1 @ t1))
-                t2 = np.array([my * t1[2] - mz * t1[1], mz * t1[0] - mx * t1[2],
-                               mx * t1[1] - my * t1[0]])
-                res = m @ nb - cosr
-                j1, j2 = t1 @ nb, t2 @ nb
-                a11, a12, a22 = float(wb @ (j1 * j1)), float(wb @ (j1 * j2)), \
-                    float(wb @ (j2 * j2))
-                g1, g2 = float(wb @ (j1 * res)), float(wb @ (j2 * res))
+                if abs(mx) < 0.9:
+                    t1x, t1y, t1z = 0.0, -mz, my
+                else:
+                    t1x, t1y, t1z = mz, 0.0, -mx
+                tn = 1.0 / math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
+                t1x, t1y, t1z = t1x * tn, t1y * tn, t1z * tn
+                t2 = (my * t1z - mz * t1y, mz * t1x - mx * t1z, mx * t1y - my * t1x)
+                J = np.array([m.tolist(), [t1x, t1y, t1z], t2]) @ nb      # (3, n)
+                res = J[0] - cosr
+                Jw = J[1:] * wb
+                (a11, a12), (_, a22) = (Jw @ J[1:].T).tolist()
+                g1, g2 = (Jw @ res).tolist()
                 det = a11 * a22 - a12 * a12
                 if det < 1e-18:
                     return None
                 d1, d2 = -(a22 * g1 - a12 * g2) / det, -(a11 * g2 - a12 * g1) / det
-                m = m + d1 * t1 + d2 * t2
+                m = np.array([mx + d1 * t1x + d2 * t2[0], my + d1 * t1y + d2 * t2[1],
+                              mz + d1 * t1z + d2 * t2[2]])
                 m /= math.sqrt(float(m @ m))
                 if it == 1:                     # drop outliers once (the CC stick's rim)
                     r = np.abs(m @ nb - cosr)
-                    k = len(r) // 2
-                    keep = r < max(3.0 * 1.4826 * float(np.partition(r, k)[k]), 2e-3)
-                    if keep.sum() < 8:
+                    kk = len(r) // 2
+                    keep = r < max(3.0 * 1.4826 * float(np.partition(r, kk)[kk]), 2e-3)
+                    if np.count_nonzero(keep) < 8:
                         return None
                     nb, wb = nb[:, keep], wb[keep]
                 elif max(abs(d1), abs(d2)) < 1e-7:
                     break
-        P = sphere.s_nt + m
+        P = s_nt + m
         if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
             return None
         return P[:2] / P[2], m
