@@ -33,10 +33,10 @@ gallery: $(STAMP)
 	$(PY) -m sphere_servo.tools.gallery
 
 paper: $(STAMP)
-	$(PY) -m sphere_servo.tools.paper
+	nice $(PY) -m sphere_servo.tools.paper --out runs/paper --ros
 
 study: $(STAMP)
-	$(PY) -m sphere_servo.tools.study
+	nice $(PY) -m sphere_servo.tools.study --n 500 --out docs/study --resume
 
 clean:
 	rm -rf $(VENV) build install log

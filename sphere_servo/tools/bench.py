@@ -12,7 +12,7 @@ import importlib
 import sys
 import traceback
 
-AREAS = ('core', 'vision', 'arm', 'bag', 'loop')
+AREAS = ('core', 'vision', 'arm', 'bag', 'loop', 'paper')
 
 
 def _fmt(x) -> str:
