@@ -221,7 +221,14 @@ def sampson_distance(C: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def ellipse_params(C: np.ndarray):
     """Centre (2,), semi-axes (2,) and angle (rad, of the first axis) of the ellipse of the
     conic C, or None if C is not a real ellipse."""
-    (a, b, d), (_, c, e), (_, _, f) = np.asarray(C, dtype=float).tolist()
+    ep = _ellipse_floats(np.asarray(C, dtype=float).tolist())
+    return None if ep is None else (np.array(ep[0]), np.array(ep[1]), ep[2])
+
+
+def _ellipse_floats(C: list):
+    """:func:`ellipse_params` of the conic given as nested lists, in plain floats:
+    ``((cx, cy), (a0, a1), angle)`` or None."""
+    (a, b, d), (_, c, e), (_, _, f) = C
     det = a * c - b * b
     if not det or not math.isfinite(det):
         return None
@@ -237,8 +244,8 @@ def ellipse_params(C: np.ndarray):
     if not (w1 > 0 and w2 > 0):
         return None
     ang = 0.5 * math.atan2(2 * b, a - c) + 0.5 * math.pi     # direction of w1 (long axis)
-    return (np.array([cx, cy]), np.array([1.0 / math.sqrt(w1), 1.0 / math.sqrt(w2)]),
-            float(math.atan2(math.sin(ang), math.cos(ang))))
+    return ((cx, cy), (1.0 / math.sqrt(w1), 1.0 / math.sqrt(w2)),
+            math.atan2(math.sin(ang), math.cos(ang)))
 
 def _conic_from_rrect(cx: float, cy: float, w: float, h: float, angle_deg: float) -> np.ndarray:
     """Conic (3×3, pixels) of a ``cv2.RotatedRect`` ellipse: full axis ``w`` along
@@ -354,9 +361,15 @@ class Detector:
                 reason = 'target too large for the image (the body fills the frame)'
             return Detection(False, reason, marks={n: Mark(n) for n in self.mark_names})
         C_px, resid, n_pts, ep, cut, thr = res
-        Kc = np.array([[px, 0, u0], [0, py, v0], [0, 0, 1.0]])
-        C_n = Kc.T @ C_px @ Kc
-        C_n = C_n / np.linalg.norm(C_n)
+        # C_n = Kᵀ C_px K / ‖·‖ with K = [[px, 0, u0], [0, py, v0], [0, 0, 1]] (floats)
+        (a, b, d), (_, c, e), (_, _, f) = C_px.tolist()
+        gu, gv = a * u0 + b * v0 + d, b * u0 + c * v0 + e
+        n00, n01, n11 = px * px * a, px * py * b, py * py * c
+        n02, n12 = px * gu, py * gv
+        n22 = u0 * gu + v0 * gv + d * u0 + e * v0 + f
+        nrm = math.sqrt(n00 * n00 + n11 * n11 + n22 * n22
+                        + 2.0 * (n01 * n01 + n02 * n02 + n12 * n12))
+        C_n = np.array([[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]]) / nrm
         try:
             sphere = sphere_from_conic(C_n)
         except MeasurementError as exc:
@@ -364,8 +377,7 @@ class Detector:
                              marks={n: Mark(n) for n in self.mark_names})
         c, ax, ang = ep
         det = Detection(True, '', C_n, sphere, sphere.quality, resid,
-                        ((float(c[0]), float(c[1])), (float(2 * ax[0]), float(2 * ax[1])),
-                         float(np.degrees(ang))), {}, cut, n_pts)
+                        (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), {}, cut, n_pts)
         det.marks = self._marks(img, encoding, rgb, thr, sphere, (px, py, u0, v0), ep, C_px)
         return det
 
@@ -452,7 +464,7 @@ class Detector:
     def _robust_ellipse(pts: np.ndarray, min_keep: int, tol_min: float, rounds: int = 4):
         """``cv2.fitEllipse`` on float32 (N, 2) points, dropping the points far from the fit
         (a lump on the contour: clutter touching the sphere, the CC stick) until it is tight.
-        Returns the conic (3×3, pixels) or None."""
+        Returns ``((cx, cy), (semi-axis along angle, the other), angle_rad)`` or None."""
         x, y = pts[:, 0].astype(np.float64), pts[:, 1].astype(np.float64)
         for _ in range(rounds + 1):
             if len(pts) < max(6, min_keep):
@@ -463,12 +475,13 @@ class Detector:
                 return None
             C = _conic_from_rrect(cx, cy, w, h, a)
             d = np.abs(_sampson_xy(C, x, y))
+            rr = (cx, cy), (0.5 * w, 0.5 * h), math.radians(a)
             k = len(d) // 2
             keep = d < max(tol_min, 4.5 * float(np.partition(d, k)[k]))
             if np.count_nonzero(keep) == len(keep):
                 break
             pts, x, y = pts[keep], x[keep], y[keep]
-        return C
+        return rr
 
     _trig_cache: dict = {}
 
@@ -498,11 +511,10 @@ class Detector:
         n0 = len(free)
         if n0 > 400:
             free = free[np.linspace(0, n0 - 1, 400).astype(int)]
-        C = self._robust_ellipse(free, int(0.3 * min(n0, 400)), 1.0 * s)
-        ep = None if C is None else ellipse_params(C)
+        ep = self._robust_ellipse(free, int(0.3 * min(n0, 400)), 1.0 * s)
         if ep is None:
             return 'blob is not elliptical'
-        (cx, cy), (a0, a1), ang = ep[0].tolist(), ep[1].tolist(), ep[2]
+        (cx, cy), (a0, a1), ang = ep
         per = math.pi * (3 * (a0 + a1) - math.sqrt((3 * a0 + a1) * (a0 + 3 * a1)))
         N = int(min(max(per / 1.5, 24), self.max_edge_points))
         ca, sa = math.cos(ang), math.sin(ang)
@@ -610,7 +622,7 @@ class Detector:
             C = _fit_conic_xy(ex, ey, cx, cy, sc)
         else:
             d = _sampson_xy(C, ex, ey)
-        ep = ellipse_params(C)
+        ep = _ellipse_floats(C.tolist())
         if ep is None:
             return 'blob is not elliptical'
         rms = math.sqrt(float(d @ d) / len(d))
@@ -659,7 +671,7 @@ class Detector:
             return marks
         px, py, u0, v0 = intr
         H, W = img.shape[:2]
-        (ecx, ecy), ax = ep[0].tolist(), ep[1].tolist()
+        (ecx, ecy), ax, _ = ep
         # the CC tip can lie outside the disc; surface marks cannot
         off_surface = any(n not in self.surface_marks for n in self.mark_names)
         rad = (1.7 if off_surface else 1.0) * max(ax) + 3
