@@ -452,6 +452,16 @@ def write_report(results: list, out: Path, seconds: float, quick: bool = False) 
         lines += [f'## {sc.title}', '', f'`{sc.name}` — start pose (target in camera) '
                   f't = {np.round(sc.start.translation, 3).tolist()} m; '
                   f'{len(r.runs)} run(s) in {r.seconds:.1f} s.', '']
+        if sc.cell_limits:
+            names = next(iter(r.runs.values())).joint_limits[2]
+            lims = ', '.join(f'{names[j]} ∈ [{"−∞" if lo is None else lo}, '
+                             f'{"∞" if hi is None else hi}] rad'
+                             for j, (lo, hi) in sc.cell_limits.items())
+            lines += [f'**Cell safety limit, tighter than the UR5\'s own: {lims}.** The UR5\'s '
+                      'own limits (±2π, elbow ±π) are met by neither set from any start '
+                      'sampled (`search_joint_limit_start`), so this scenario models a cell '
+                      'with a tighter range on one joint, placed where s_cc\'s detour crosses '
+                      'it and s_n\'s path does not.', '']
         rows = [metrics(res, r.camera) for res in r.runs.values()]
         cols = [(k, h) for k, h in COLUMNS if any(k in row for row in rows)]
         lines.append('| ' + ' | '.join(h for _, h in cols) + ' |')
