@@ -214,11 +214,26 @@ class SccFeatures(FeatureSet):
 _CLASSES = {'s_n': SnFeatures, 's': STFeatures, 's_cc': SccFeatures}
 
 
+def register_feature_set(name: str, cls: type) -> None:
+    """Make ``make_feature_set(name, …)`` build ``cls`` (a :class:`FeatureSet`), e.g. a
+    baseline kept outside the paper's three sets (``core/ibvs.py``)."""
+    if not (isinstance(cls, type) and issubclass(cls, FeatureSet)):
+        raise TypeError(f'{cls!r} is not a FeatureSet subclass')
+    _CLASSES.setdefault(name, cls)
+
+
+def feature_labels(name: str) -> tuple:
+    """Labels of the features of set ``name``."""
+    return _CLASSES[name].labels
+
+
 def make_feature_set(name: str, desired: Observation) -> FeatureSet:
-    """Feature set ``'s_n'``, ``'s'`` or ``'s_cc'`` anchored on the desired observation."""
+    """Feature set ``'s_n'``, ``'s'``, ``'s_cc'`` (or a registered one) anchored on the
+    desired observation."""
     try:
         cls = _CLASSES[name]
     except KeyError:
-        raise ValueError(f'unknown feature set {name!r}: use one of {FEATURE_SETS}') from None
+        raise ValueError(f'unknown feature set {name!r}: use one of {tuple(_CLASSES)}') \
+            from None
     return cls(desired)
 

@@ -79,7 +79,7 @@ class IbvsFeatures(FeatureSet):
 
 def register() -> None:
     """Make ``make_feature_set('ibvs', …)`` (and so ``run_loop``) know the baseline."""
-    _features._CLASSES.setdefault(NAME, IbvsFeatures)
+    _features.register_feature_set(NAME, IbvsFeatures)
 
 
 register()

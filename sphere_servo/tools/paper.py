@@ -413,8 +413,8 @@ def figures(r: ScenarioResult, out: Path) -> list[Path]:
 
 
 def _labels(fs: str) -> tuple:
-    from ..core.features import _CLASSES
-    return _CLASSES[fs].labels
+    from ..core.features import feature_labels
+    return feature_labels(fs)
 
 
 def _fmt(v) -> str:
