@@ -199,18 +199,31 @@ def _fit_conic_xy(x: np.ndarray, y: np.ndarray, mx: float, my: float, sc: float,
     return np.array([[A, B, Dx], [B, Cc, Ey], [Dx, Ey, F]]) / nrm
 
 
+def _homog(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(3, N) float64 rows x, y, 1."""
+    P = np.empty((3, len(x)))
+    P[0] = x
+    P[1] = y
+    P[2] = 1.0
+    return P
+
+
+def _sampson_P(C: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """:func:`sampson_distance` of the points given as (3, N) homogeneous rows ``(x, y, 1)``:
+    with ``G = C P``, ``pᵀCp / (2 ‖(G₀, G₁)‖)`` (one product instead of a dozen ufuncs)."""
+    G = C @ P
+    alg = G[0] * P[0]
+    alg += G[1] * P[1]
+    alg += G[2]
+    h = np.hypot(G[0], G[1])
+    h *= 2.0
+    alg /= np.maximum(h, 1e-300, out=h)
+    return alg
+
+
 def _sampson_xy(C: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """:func:`sampson_distance` of the points (x, y) given as two (N,) arrays."""
-    (a, b, d), (_, c, e), (_, _, f) = C.tolist()
-    gx = a * x + b * y + d
-    gy = b * x + c * y + e
-    alg = gx * x + gy * y + d * x + e * y + f
-    gx *= gx
-    gy *= gy
-    gx += gy
-    np.sqrt(gx, out=gx)
-    gx *= 2.0
-    return alg / np.maximum(gx, 1e-300, out=gx)
+    return _sampson_P(C, _homog(x, y))
 
 
 def sampson_distance(C: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -306,7 +319,8 @@ class Detector:
         self.coarse_step = max(1, int(coarse_step))
         self._chroma = {k: self._to_chroma(np.asarray(v, float)) for k, v in
                         self.colors.items()}
-        self._body_test = _chroma_test(self._chroma['body'], 1.5 * self.body_chroma_tol)
+        Q, w = _chroma_test(self._chroma['body'], 1.5 * self.body_chroma_tol)
+        self._body_test = {False: Q, True: np.ascontiguousarray(Q[::-1])}, w
         self.cos_mark = float(np.cos(mark_radius))
         self.limb_px = 1.5       # a cap's (grown) pixels this close to the silhouette (px):
         #                          the cap is treated as cut by the limb
@@ -465,7 +479,7 @@ class Detector:
         """``cv2.fitEllipse`` on float32 (N, 2) points, dropping the points far from the fit
         (a lump on the contour: clutter touching the sphere, the CC stick) until it is tight.
         Returns ``((cx, cy), (semi-axis along angle, the other), angle_rad)`` or None."""
-        x, y = pts[:, 0].astype(np.float64), pts[:, 1].astype(np.float64)
+        P = _homog(pts[:, 0], pts[:, 1])
         for _ in range(rounds + 1):
             if len(pts) < max(6, min_keep):
                 return None
@@ -474,13 +488,13 @@ class Detector:
                     and math.isfinite(h) and w > 0.5 and h > 0.5):
                 return None
             C = _conic_from_rrect(cx, cy, w, h, a)
-            d = np.abs(_sampson_xy(C, x, y))
+            d = np.abs(_sampson_P(C, P))
             rr = (cx, cy), (0.5 * w, 0.5 * h), math.radians(a)
             k = len(d) // 2
             keep = d < max(tol_min, 4.5 * float(np.partition(d, k)[k]))
             if np.count_nonzero(keep) == len(keep):
                 break
-            pts, x, y = pts[keep], x[keep], y[keep]
+            pts, P = pts[keep], P[:, keep]
         return rr
 
     _trig_cache: dict = {}
@@ -521,28 +535,28 @@ class Detector:
         # rows: point x, y (about the centre) and normal x, y (unnormalized)
         G = np.array([[a0 * ca, -a1 * sa], [a0 * sa, a1 * ca],
                       [ca / a0, -sa / a1], [sa / a0, ca / a1]]) @ self._trig(N)
-        px_, py_, nx, ny = G
-        px_ += cx
-        py_ += cy
-        nn = np.sqrt(nx * nx + ny * ny)
-        nx /= nn
-        ny /= nn
+        G[0] += cx
+        G[1] += cy
+        G[2:] /= np.hypot(G[2], G[3])
         L = 2 * s + 4
         hx, hy = 0.5 * (W - 1), 0.5 * (H - 1)
         bw = math.hypot(a0 * ca, a1 * sa)           # half-extents of the ellipse's box
         bh = math.hypot(a0 * sa, a1 * ca)
         if abs(cx - hx) + bw + L > hx - 1.0 or abs(cy - hy) + bh + L > hy - 1.0:
+            px_, py_, nx, ny = G
             ok = ((np.abs(px_ - hx) + L * np.abs(nx) <= hx - 1.0)
                   & (np.abs(py_ - hy) + L * np.abs(ny) <= hy - 1.0))
-            px_, py_, nx, ny = px_[ok], py_[ok], nx[ok], ny[ok]
-            N = len(px_)
+            G = G[:, ok]
+            N = G.shape[1]
             if N < 10:
                 return 'too few clean edge points'
+        px_, py_, nx, ny = G
         P = 2 * L + 1
-        offs = np.arange(-L, L + 1, dtype=np.float32)
-        mx = px_.astype(np.float32)[:, None] + offs * nx.astype(np.float32)[:, None]
-        my = py_.astype(np.float32)[:, None] + offs * ny.astype(np.float32)[:, None]
-        prof3 = cv2.remap(img, mx.reshape(1, -1), my.reshape(1, -1), cv2.INTER_LINEAR)
+        # sample maps (2, N·P): point + offset · normal, for offsets −L … L
+        maps = G[2:, :, None] * self._offsets(L)
+        maps += G[:2, :, None]
+        maps = maps.astype(np.float32).reshape(2, 1, N * P)
+        prof3 = cv2.remap(img, maps[0], maps[1], cv2.INTER_LINEAR)
         K, M = self.K, self.K + 1
         color = prof3.ndim == 3
         if color:
@@ -589,7 +603,7 @@ class Detector:
         np.maximum(S, 1e-6, out=S)
         cov = win[:, 2:] - i_out[:, None]
         cov /= S
-        np.clip(cov, 0.0, 1.0, out=cov)
+        np.minimum(np.maximum(cov, 0.0, out=cov), 1.0, out=cov)      # (np.clip is slower)
         csum = cov.sum(axis=1)
         good = (contrast > 0.5 * self.min_contrast) & (csum < 2.5)
         if color:
@@ -599,15 +613,20 @@ class Detector:
                 return 'blob is not body-coloured'
             good &= body
         e = csum + (jj - (L + 0.5))                 # offset from the ellipse point
-        e = e[good]
-        if len(e) < 10:
+        ng = np.count_nonzero(good)
+        if ng < 10:
             return 'too few clean edge points'
-        ex = px_[good] + e * nx[good]
-        ey = py_[good] + e * ny[good]
+        E = np.empty((3, ng))                       # the edge points, homogeneous rows
+        E[0] = px_[good]
+        E[1] = py_[good]
+        E[2] = e[good]
+        E[0] += E[2] * nx[good]
+        E[1] += E[2] * ny[good]
+        E[2] = 1.0
         sc = 2.0 / math.sqrt(a0 * a0 + a1 * a1)     # Hartley scale of the coarse ellipse
-        C = _fit_conic_xy(ex, ey, cx, cy, sc)
+        C = _fit_conic_xy(E[0], E[1], cx, cy, sc)
         for _ in range(3):
-            d = _sampson_xy(C, ex, ey)
+            d = _sampson_P(C, E)
             k = len(d) // 2
             med = float(np.partition(d, k)[k])
             ad = np.abs(d - med)
@@ -618,15 +637,24 @@ class Detector:
                 return 'too few clean edge points'
             if nk == len(keep):
                 break
-            ex, ey = ex[keep], ey[keep]
-            C = _fit_conic_xy(ex, ey, cx, cy, sc)
+            E = E[:, keep]
+            C = _fit_conic_xy(E[0], E[1], cx, cy, sc)
         else:
-            d = _sampson_xy(C, ex, ey)
+            d = _sampson_P(C, E)
         ep = _ellipse_floats(C.tolist())
         if ep is None:
             return 'blob is not elliptical'
         rms = math.sqrt(float(d @ d) / len(d))
         return C, rms, len(d), ep
+
+    _offs_cache: dict = {}
+
+    @classmethod
+    def _offsets(cls, L: int) -> np.ndarray:
+        o = cls._offs_cache.get(L)
+        if o is None:
+            o = cls._offs_cache[L] = np.arange(-L, L + 1, dtype=np.float64)
+        return o
 
     _o1_cache: dict = {}
 
@@ -661,7 +689,7 @@ class Detector:
         """(N,) bool: the (N, 3) rgb (bgr if ``bgr``) pixels have the body's chromaticity
         (within 1.5 ``body_chroma_tol``)."""
         Q, w = self._body_test
-        y = pix.astype(np.float32) @ (Q[::-1] if bgr else Q)
+        y = pix.astype(np.float32) @ Q[bgr]
         y *= y
         return (y @ w) < 0.0
 
@@ -741,18 +769,21 @@ class Detector:
                 # coverage by unmixing: pixel = a·shade·mark + b·shade·body, α = a/(a + b)
                 ab = roi[gy0 + yy, gx0 + xx].astype(np.float64) @ self._unmix[name]
                 alpha = ab[:, 0] / np.maximum(ab[:, 1], 1e-9)
-                np.clip(alpha, 0.0, 1.0, out=alpha)
+                np.minimum(np.maximum(alpha, 0.0, out=alpha), 1.0, out=alpha)
                 inner = cv2.erode(full, _K3)[yy, xx] > 0
                 alpha[inner] = 1.0
                 # (nearly) cut by the limb? The distance to the silhouette is concave inside
                 # it, so over the filled hull it is smallest at a vertex; the grown pixels are
                 # within 2 px of the hull: only a cap with a vertex within limb_px + 4 px
                 # (or outside) needs the per-pixel distances
-                hv = hull.reshape(-1, 2).astype(np.float64)
-                near_limb = (inside * _sampson_xy(C_px, hv[:, 0] + x0, hv[:, 1] + y0)).min() \
-                    < self.limb_px + 4.0
+                hv = np.ones((3, len(hull)))
+                hv[:2] = (hull.reshape(-1, 2) + (x0, y0)).T
+                near_limb = (inside * _sampson_P(C_px, hv)).min() < self.limb_px + 4.0
+                Ppx = _homog(xx, yy)
+                Ppx[0] += ox
+                Ppx[1] += oy
                 if near_limb:
-                    dsil = np.abs(_sampson_xy(C_px, xx + float(ox), yy + float(oy)))
+                    dsil = np.abs(_sampson_P(C_px, Ppx))
                     if float(dsil.min()) < self.limb_px:
                         # the visible part's mean is biased; use the boundary with the body,
                         # away from the silhouette
@@ -766,9 +797,9 @@ class Detector:
             if area < self.min_mark_px:
                 continue
             if name in self.surface_marks:
-                xn = (xx + (ox - u0)) * (1.0 / px)
-                yn = (yy + (oy - v0)) * (1.0 / py)
-                res = self._cap_centre(sphere, xn, yn, alpha, rim)
+                Kinv = np.array([[1.0 / px, 0.0, -u0 / px], [0.0, 1.0 / py, -v0 / py],
+                                 [0.0, 0.0, 1.0]])
+                res = self._cap_centre(sphere, Kinv @ Ppx, alpha, rim)
                 if res is None:
                     marks[name] = Mark(name, area_px=area, partial=rim is not None)
                     continue
@@ -804,24 +835,18 @@ class Detector:
         return b[:2] / b[2]
 
     @staticmethod
-    def _on_sphere(sphere: SphereMeasurement, xn, yn):
-        """Back-project normalized image points on the estimated sphere (eq. 11–12, units
-        of r). Returns ``(X, k, rho, nn, cos_i)``: ``X`` (3, N) = ``(x̄, 1)``, ``k`` = 1/‖x̄‖
+    def _on_sphere(sphere: SphereMeasurement, X: np.ndarray):
+        """Back-project normalized image points ``X`` (3, N) = ``(x̄, 1)`` on the estimated
+        sphere (eq. 11–12, units of r). Returns ``(k, rho, nn, cos_i)``: ``k`` = 1/‖x̄‖
         (so ``q = k·X`` is the unit ray), ``rho`` = ‖P‖/r, ``nn`` = ‖ρq − s_n,t‖ (1 on the
         sphere; less for a ray that misses it, which meets its closest point) and ``cos_i``
         the cosine of the viewing incidence; the unit surface normal is
         ``n = (ρq − s_n,t)/nn``. (Scalar rows: ``|q| = 1`` turns the 3-vector norms and
         dot products into ``b·q`` and ``s·q``.)"""
-        X = np.empty((3, len(xn)))
-        X[0] = xn
-        X[1] = yn
-        X[2] = 1.0
-        k = X[0] * X[0]
-        k += X[1] * X[1]
-        k += 1.0
-        np.sqrt(k, out=k)
+        k = np.hypot(X[0], X[1])
+        np.hypot(k, 1.0, out=k)
         np.divide(1.0, k, out=k)
-        bq, sq = np.vstack([sphere.b, sphere.s_nt]) @ X
+        bq, sq = np.array([sphere.b, sphere.s_nt]) @ X
         bq *= k
         sq *= k
         rd = sphere.r_delta
@@ -839,10 +864,11 @@ class Detector:
         np.sqrt(nn, out=nn)
         cos_i = sq - rho
         cos_i /= nn
-        return X, k, rho, nn, cos_i
+        return k, rho, nn, cos_i
 
-    def _cap_centre(self, sphere: SphereMeasurement, xn, yn, w, rim=None):
-        """Centre of a painted cap from its pixels (normalized coords, coverage ``w``).
+    def _cap_centre(self, sphere: SphereMeasurement, X, w, rim=None):
+        """Centre of a painted cap from its pixels (normalized coords ``X`` (3, N) =
+        ``(x̄, 1)``, coverage ``w``).
 
         Whole cap: back-project the pixels on the sphere (units of r, eq. 11–12), weight
         each by the surface area of its footprint (``‖P‖² / (‖x̄‖³ cos i)``) and average the
@@ -857,7 +883,7 @@ class Detector:
 
         Returns ``(xy of s_n,t + m, m)`` or None when the centre cannot be measured (it
         faces away from the camera, or too little rim is visible)."""
-        X, k, rho, nn, cos_i = self._on_sphere(sphere, xn, yn)
+        k, rho, nn, cos_i = self._on_sphere(sphere, X)
         s_nt = sphere.s_nt
         # Σ wa·n with n = (ρ k X − s)/nn and wa = w ρ² k³ / max(cos i, 0.1)
         c = k * k
