@@ -773,12 +773,19 @@ class Detector:
                 inner = cv2.erode(full, _K3)[yy, xx] > 0
                 alpha[inner] = 1.0
                 # (nearly) cut by the limb? The distance to the silhouette is concave inside
-                # it, so over the filled hull it is smallest at a vertex; the grown pixels are
-                # within 2 px of the hull: only a cap with a vertex within limb_px + 4 px
-                # (or outside) needs the per-pixel distances
-                hv = np.ones((3, len(hull)))
-                hv[:2] = (hull.reshape(-1, 2) + (x0, y0)).T
-                near_limb = (inside * _sampson_P(C_px, hv)).min() < self.limb_px + 4.0
+                # it, so over the hull's box it is smallest at a corner; the grown pixels are
+                # within 2 px of the hull: only a cap whose box has a corner within
+                # limb_px + 4 px of the silhouette (or outside it) needs per-pixel distances
+                bu0, bv0 = x0 + hx - 0.5, y0 + hy - 0.5
+                near_limb = False
+                for cu, cv_ in ((bu0, bv0), (bu0 + hw, bv0), (bu0, bv0 + hh),
+                                (bu0 + hw, bv0 + hh)):
+                    g0 = ca * cu + cb * cv_ + cd
+                    g1 = cb * cu + cc * cv_ + ce
+                    alg = inside * (g0 * cu + g1 * cv_ + cd * cu + ce * cv_ + cf)
+                    if alg < (self.limb_px + 4.0) * 2.0 * math.hypot(g0, g1):
+                        near_limb = True
+                        break
                 Ppx = _homog(xx, yy)
                 Ppx[0] += ox
                 Ppx[1] += oy
@@ -799,7 +806,7 @@ class Detector:
             if name in self.surface_marks:
                 Kinv = np.array([[1.0 / px, 0.0, -u0 / px], [0.0, 1.0 / py, -v0 / py],
                                  [0.0, 0.0, 1.0]])
-                res = self._cap_centre(sphere, Kinv @ Ppx, alpha, rim)
+                res = self._cap_centre(sphere, Kinv @ Ppx, alpha, rim, hits=not near_limb)
                 if res is None:
                     marks[name] = Mark(name, area_px=area, partial=rim is not None)
                     continue
@@ -835,27 +842,30 @@ class Detector:
         return b[:2] / b[2]
 
     @staticmethod
-    def _on_sphere(sphere: SphereMeasurement, X: np.ndarray):
+    def _on_sphere(sphere: SphereMeasurement, X: np.ndarray, hits: bool = False):
         """Back-project normalized image points ``X`` (3, N) = ``(x̄, 1)`` on the estimated
         sphere (eq. 11–12, units of r). Returns ``(k, rho, nn, cos_i)``: ``k`` = 1/‖x̄‖
         (so ``q = k·X`` is the unit ray), ``rho`` = ‖P‖/r, ``nn`` = ‖ρq − s_n,t‖ (1 on the
         sphere; less for a ray that misses it, which meets its closest point) and ``cos_i``
         the cosine of the viewing incidence; the unit surface normal is
         ``n = (ρq − s_n,t)/nn``. (Scalar rows: ``|q| = 1`` turns the 3-vector norms and
-        dot products into ``b·q`` and ``s·q``.)"""
+        dot products into ``b·q`` and ``s·q``.) ``hits``: every ray is known to meet the
+        sphere (pixels well inside the silhouette), so ``nn`` is 1 (returned as None)."""
         k = np.hypot(X[0], X[1])
         np.hypot(k, 1.0, out=k)
         np.divide(1.0, k, out=k)
-        bq, sq = np.array([sphere.b, sphere.s_nt]) @ X
-        bq *= k
-        sq *= k
         rd = sphere.r_delta
+        sq = sphere.s_nt @ X
+        sq *= k
+        bq = rd * sq                              # b = r_δ s_n,t
         root = bq * bq
         root += rd * rd - 1.0
         np.maximum(root, 0.0, out=root)
         np.sqrt(root, out=root)
         rho = bq - root
         rho *= 1.0 / rd
+        if hits:
+            return k, rho, None, sq - rho
         # ‖ρq − s‖² = ρ² − 2ρ s·q + ‖s‖²
         ss = float(sphere.s_nt @ sphere.s_nt)
         nn = rho * (rho - 2.0 * sq)
@@ -866,7 +876,7 @@ class Detector:
         cos_i /= nn
         return k, rho, nn, cos_i
 
-    def _cap_centre(self, sphere: SphereMeasurement, X, w, rim=None):
+    def _cap_centre(self, sphere: SphereMeasurement, X, w, rim=None, hits: bool = False):
         """Centre of a painted cap from its pixels (normalized coords ``X`` (3, N) =
         ``(x̄, 1)``, coverage ``w``).
 
@@ -883,16 +893,17 @@ class Detector:
 
         Returns ``(xy of s_n,t + m, m)`` or None when the centre cannot be measured (it
         faces away from the camera, or too little rim is visible)."""
-        k, rho, nn, cos_i = self._on_sphere(sphere, X)
+        k, rho, nn, cos_i = self._on_sphere(sphere, X, hits and rim is None)
         s_nt = sphere.s_nt
         # Σ wa·n with n = (ρ k X − s)/nn and wa = w ρ² k³ / max(cos i, 0.1)
-        c = k * k
+        t = rho * k
+        c = t * t
         c *= k
         c *= w
-        c *= rho * rho
         c /= np.maximum(cos_i, 0.1)
-        c /= nn
-        m = X @ (c * rho * k) - float(c.sum()) * s_nt
+        if nn is not None:
+            c /= nn
+        m = X @ (c * t) - float(c.sum()) * s_nt
         m /= max(math.sqrt(float(m @ m)), 1e-300)
         if rim is not None:
             if np.count_nonzero(rim) < 8:
@@ -902,6 +913,9 @@ class Detector:
             cb = np.maximum(cos_i[rim], 0.05)
             wb = cb * cb
             cosr = self.cos_mark
+            # the weighted sums over the rim as moments: Σ w n nᵀ and Σ w n, so that
+            # each step costs 3×3 products (J_a = t_a·n, residual m·n − cos r)
+            S, mu = (nb * wb) @ nb.T, nb @ wb
             for it in range(6):
                 # tangent basis (t1, t2) at m, then one weighted Gauss–Newton step
                 mx, my, mz = m.tolist()
@@ -912,11 +926,10 @@ class Detector:
                 tn = 1.0 / math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
                 t1x, t1y, t1z = t1x * tn, t1y * tn, t1z * tn
                 t2 = (my * t1z - mz * t1y, mz * t1x - mx * t1z, mx * t1y - my * t1x)
-                J = np.array([m.tolist(), [t1x, t1y, t1z], t2]) @ nb      # (3, n)
-                res = J[0] - cosr
-                Jw = J[1:] * wb
-                (a11, a12), (_, a22) = (Jw @ J[1:].T).tolist()
-                g1, g2 = (Jw @ res).tolist()
+                T = np.array([m.tolist(), [t1x, t1y, t1z], t2])
+                (m0, a11, a12), (m1, _, a22) = (T[1:] @ S @ T.T).tolist()
+                _, v1, v2 = (T @ mu).tolist()
+                g1, g2 = m0 - cosr * v1, m1 - cosr * v2
                 det = a11 * a22 - a12 * a12
                 if det < 1e-18:
                     return None
@@ -931,6 +944,7 @@ class Detector:
                     if np.count_nonzero(keep) < 8:
                         return None
                     nb, wb = nb[:, keep], wb[keep]
+                    S, mu = (nb * wb) @ nb.T, nb @ wb
                 elif max(abs(d1), abs(d2)) < 1e-7:
                     break
         P = s_nt + m
