@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import json
 import re
-import warnings
 import subprocess
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -67,13 +66,11 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
                         '-o', str(out_bag), '--storage', 'sqlite3'],
                        env=install_space, capture_output=True, text=True, timeout=120)
     rep = json.loads(report.read_text())
-    # --check fails only if the recorder lost an image of the run (then its features
-    # cannot be regenerated); everything else is checked below
+    # the recorder loses nothing (arm_sim keeps 30 images of reliable history, so a recorder
+    # starved of CPU for a second still gets them all) and --check passes
     lost = rep['topics']['/features/s_n']['no_image']
-    assert p.returncode == (1 if lost else 0), p.stdout + p.stderr
-    # (in lockstep the recorder is not in the loop: starved of CPU it can fall more than
-    # arm_sim's 10-deep reliable history behind, and lose an image the detector got)
-    assert lost <= max(2, rep['images'] // 50), f'the recorder lost {lost} images\n{p.stdout}'
+    assert lost == 0, f'the recorder lost {lost} images\n{p.stdout}'
+    assert p.returncode == 0, p.stdout + p.stderr
 
     # the desired is found in the bag: the image the launcher last taught
     assert rep['desired'][-1]['taught_stamp_ns'] == taught, rep['desired']
@@ -90,14 +87,6 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
 
     # s_n, read back from the two bags: same count, same image stamps, same numbers
     rec, gen = _features(bag), _features(out_bag)
-    if lost:
-        with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
-            conns = [c for c in reader.connections if c.topic == '/camera/image_raw']
-            images = {rf.stamp_ns(reader.deserialize(raw, c.msgtype).header)
-                      for c, _, raw in reader.messages(connections=conns)}
-        rec = [r for r in rec if r[0] in images]
-        warnings.warn(f'the recorder lost {lost} image(s) of the run; compared the '
-                      f'{len(rec)} features of the recorded images')
     assert len(gen) == len(rec) > 100 and topics['/features/s_n']['regenerated'] == len(gen)
     for a, b in zip(rec, gen):
         assert a[0] == b[0] and a[1] == b[1]

@@ -539,6 +539,8 @@ class Match:
     same_names: bool
     max_diff: float
     no_image: int = 0  # recorded messages of an image the bag lacks (the recorder lost it)
+    warmup: int = 0    # leading empty recorded measurements (the live detector had no
+                       # camera_info yet; offline, the bag's camera_info is known at once)
 
     def ok(self, tol: float = TOL, partial: bool = False) -> bool:
         """Message for message: the same count and stamps (``partial``: every message whose
@@ -562,6 +564,11 @@ def compare_recorded(res: Result, topic: str) -> Match | None:
     gen = res.streams.get(topic) or []
     if not rec:
         return None
+    warmup = 0
+    if topic == MEAS_TOPIC:  # the live detector's start, before its first camera_info
+        while warmup < len(rec) and not rec[warmup][1].name:
+            warmup += 1
+        rec = rec[warmup:]
     from collections import Counter
     gen_st = [stamp_ns(m.header) for _, m in gen]
     rec_st = [stamp_ns(m.header) for _, m in rec]
@@ -584,7 +591,7 @@ def compare_recorded(res: Result, topic: str) -> Match | None:
     common = sum((Counter(gen_st) & Counter(rec_st)).values())
     images = Counter(f.stamp for f in res.frames)
     no_image = sum(max(0, n - images[st]) for st, n in Counter(rec_st).items())
-    return Match(topic, len(gen), len(rec), len(pairs), common, names, diff, no_image)
+    return Match(topic, len(gen), len(rec), len(pairs), common, names, diff, no_image, warmup)
 
 
 def write_bag(res: Result, out: Path, storage: str = 'mcap') -> dict[str, int]:
@@ -819,7 +826,9 @@ def _main(opts) -> int:
             print(f'  {topic:28} {n:11d} {"-":>8}')
             continue
         print(f'  {topic:28} {n:11d} {m.recorded:8d}  {m.stamps:6}  {m.max_diff:.3g}'
-              + (f'  ({m.no_image} recorded of images not in the bag)' if m.no_image else ''))
+              + (f'  ({m.no_image} recorded of images not in the bag)' if m.no_image else '')
+              + (f'  ({m.warmup} empty at the detector\'s start, not compared)'
+                 if m.warmup else ''))
         # features: the same stream; the recorder may start on measurements before images,
         # and the servo is stopped before the last images
         if opts.check is not None:
