@@ -27,7 +27,7 @@ def fig3(t: np.ndarray, e: np.ndarray, v: np.ndarray, labels, path: str | Path,
     for i in range(e.shape[1]):
         ax1.plot(t, e[:, i], label=labels[i] if i < len(labels) else f'e{i}')
     ax1.set_xlabel('time (s)')
-    ax1.set_ylabel('s − s* (s_n,t: 1, θu: rad)')
+    ax1.set_ylabel('s − s* (position parts: 1, rotation parts: rad)')
     ax1.set_title('(a) feature error')
     ax1.legend(fontsize=8, ncol=2)
     ax1.grid(alpha=0.3)
