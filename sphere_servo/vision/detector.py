@@ -302,7 +302,7 @@ class Detector:
     def __init__(self, colors: dict | None = None, surface_marks=('P1', 'P2'), *,
                  min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
-                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 150,
+                 min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 100,
                  coarse_step: int = 4, mark_radius: float = float(np.radians(9.0))):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
@@ -460,9 +460,10 @@ class Detector:
                 dv *= (2.0 / dn)[:, None]
                 dv += f
                 dv += 0.5
-                qi = dv.astype(np.intp)
-                qi *= s
-                body = self._is_body(img[qi[:, 1], qi[:, 0]], bgr=rgb is not img)
+                # flat index of the full-resolution pixel (s·i, s·j)
+                qi = dv.astype(np.intp) @ np.array([s * 3, s * 3 * W], np.intp)
+                body = self._is_body(img.reshape(-1)[qi[:, None] + np.arange(3)],
+                                     bgr=rgb is not img)
                 if np.count_nonzero(body) < max(8, 0.3 * len(free)):
                     reason = 'blob is not body-coloured'
                     continue
