@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -359,6 +359,8 @@ def shrink_png(path: Path, colors: int = 96) -> Path:
 def _balloon_images(sc: Scenario, path: Path) -> Path:
     """Fig. 10 (a)(b): desired and initial rendered images of the balloon."""
     import matplotlib.pyplot as plt
+
+    from .plots import save
     from ..vision.renderer import Renderer
     ren = Renderer(CameraIntrinsics(), make_target(sc.target))
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
@@ -367,15 +369,14 @@ def _balloon_images(sc: Scenario, path: Path) -> Path:
         ax.set_title(f'{lab} image')
         ax.set_xlabel('u (px)')
         ax.set_ylabel('v (px)')
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=80)
 
 
 def _joint_plot(res_by_set: dict, path: Path) -> Path:
     """Joint positions vs time with the limits (arm scenario)."""
     import matplotlib.pyplot as plt
+
+    from .plots import save
     fig, axes = plt.subplots(1, len(res_by_set), figsize=(11, 3.6), squeeze=False)
     for ax, (fs, res) in zip(axes[0], res_by_set.items()):
         lo, hi, names = res.joint_limits
@@ -389,10 +390,7 @@ def _joint_plot(res_by_set: dict, path: Path) -> Path:
         ax.set_ylabel('joint position (rad)')
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=90)
 
 
 def figures(r: ScenarioResult, out: Path) -> list[Path]:

@@ -19,38 +19,55 @@ import numpy as np  # noqa: E402
 from ..core.loop import LoopResult  # noqa: E402
 
 
+def plot_errors(ax, t: np.ndarray, e: np.ndarray, labels, fontsize: int = 8) -> None:
+    """Each column of ``e`` (N, n) against ``t``, labelled, with legend and grid."""
+    for i in range(e.shape[1]):
+        ax.plot(t, e[:, i], label=labels[i] if i < len(labels) else f'e{i}')
+    ax.legend(fontsize=fontsize, ncol=2)
+    ax.grid(alpha=0.3)
+
+
+def plot_twist(ax, t: np.ndarray, v: np.ndarray, fontsize: int = 8):
+    """Camera twists (N, 6): translation (m/s) on ``ax``, rotation (deg/s, dashed) on a
+    twin axis; one legend. Returns the twin axis."""
+    names = ('v_x (m/s)', 'v_y (m/s)', 'v_z (m/s)', 'ω_x (deg/s)', 'ω_y (deg/s)', 'ω_z (deg/s)')
+    axb = ax.twinx()
+    for i in range(3):
+        ax.plot(t, v[:, i], label=names[i])
+        axb.plot(t, np.degrees(v[:, 3 + i]), '--', label=names[3 + i])
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = axb.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=fontsize, ncol=2)
+    ax.grid(alpha=0.3)
+    return axb
+
+
+def save(fig, path: str | Path, title: str = '', dpi: int = 110) -> Path:
+    """Title, tight layout, write the PNG, close the figure."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def fig3(t: np.ndarray, e: np.ndarray, v: np.ndarray, labels, path: str | Path,
          title: str = '') -> Path:
     """Paper Fig. 3: (a) feature error s − s* over time, (b) camera velocities
     (translation m/s, rotation deg/s) in the camera frame."""
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
-    for i in range(e.shape[1]):
-        ax1.plot(t, e[:, i], label=labels[i] if i < len(labels) else f'e{i}')
+    plot_errors(ax1, t, e, labels)
     ax1.set_xlabel('time (s)')
     ax1.set_ylabel('s − s* (position parts: 1, rotation parts: rad)')
     ax1.set_title('(a) feature error')
-    ax1.legend(fontsize=8, ncol=2)
-    ax1.grid(alpha=0.3)
-    names = ('v_x (m/s)', 'v_y (m/s)', 'v_z (m/s)', 'ω_x (deg/s)', 'ω_y (deg/s)', 'ω_z (deg/s)')
-    ax2b = ax2.twinx()
-    for i in range(3):
-        ax2.plot(t, v[:, i], label=names[i])
-        ax2b.plot(t, np.degrees(v[:, 3 + i]), '--', label=names[3 + i])
+    ax2b = plot_twist(ax2, t, v)
     ax2.set_xlabel('time (s)')
     ax2.set_ylabel('translational velocity (m/s)')
     ax2b.set_ylabel('rotational velocity (deg/s)')
     ax2.set_title('(b) camera velocities (camera frame)')
-    h1, l1 = ax2.get_legend_handles_labels()
-    h2, l2 = ax2b.get_legend_handles_labels()
-    ax2.legend(h1 + h2, l1 + l2, fontsize=8, ncol=2)
-    ax2.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, title)
 
 
 def _image_xy(u: np.ndarray) -> np.ndarray:
@@ -108,10 +125,4 @@ def fig4(runs: dict, path: str | Path, title: str = '') -> Path:
         a.invert_yaxis()
         a.grid(alpha=0.3)
         a.legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, title)

@@ -684,40 +684,23 @@ def format_sets(runs: list[SetRun], tol: float) -> str:
 
 def plot_sets(runs: list[SetRun], path: Path, title: str = '') -> Path:
     """Errors (left) and open-loop twists (right), one row per set, same time axis."""
-    import matplotlib
-    matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
+    from .plots import plot_errors, plot_twist, save
     fig, axes = plt.subplots(len(runs), 2, figsize=(11, 3.2 * len(runs)), squeeze=False,
                              sharex=True)
-    vnames = ('v_x', 'v_y', 'v_z', 'ω_x', 'ω_y', 'ω_z')
     for (ax1, ax2), r in zip(axes, runs):
         t = r.t - (runs[0].t[0] if len(runs[0].t) else 0.0)
-        for i in range(r.e.shape[1]):
-            ax1.plot(t, r.e[:, i], label=r.labels[i] if i < len(r.labels) else f'e{i}')
+        plot_errors(ax1, t, r.e, r.labels, fontsize=7)
         ax1.set_ylabel(f'{r.name}: s − s*')
-        ax1.legend(fontsize=7, ncol=2)
-        ax1.grid(alpha=0.3)
-        ax2b = ax2.twinx()
-        for i in range(3):
-            ax2.plot(t, r.v[:, i], label=f'{vnames[i]} (m/s)')
-            ax2b.plot(t, np.degrees(r.v[:, 3 + i]), '--', label=f'{vnames[3 + i]} (deg/s)')
+        ax2b = plot_twist(ax2, t, r.v, fontsize=7)
         ax2.set_ylabel(f'{r.name}: v (m/s)')
         ax2b.set_ylabel('ω (deg/s)')
-        h1, l1 = ax2.get_legend_handles_labels()
-        h2, l2 = ax2b.get_legend_handles_labels()
-        ax2.legend(h1 + h2, l1 + l2, fontsize=7, ncol=2)
-        ax2.grid(alpha=0.3)
     axes[0, 0].set_title('feature error (open loop on the recorded images)')
     axes[0, 1].set_title('the law\'s camera twist (not applied)')
     axes[-1, 0].set_xlabel('image time since the first servoed image (s)')
     axes[-1, 1].set_xlabel('image time since the first servoed image (s)')
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, path, title, dpi=100)
 
 
 def export_desired(path, res: Result, out: Path, image_topic: str = IMAGE_TOPIC) -> Path:

@@ -211,6 +211,7 @@ def plot(summary: dict, path: Path) -> Path:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    from .plots import save
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.8))
     w = 0.2
     x = np.arange(len(CONDITIONS))
@@ -226,9 +227,7 @@ def plot(summary: dict, path: Path) -> Path:
         a.grid(alpha=0.3, axis='y')
         a.legend(fontsize=8)
     a2.set_ylim(0.9, None)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
     from .paper import shrink_png
     return shrink_png(path)
 
