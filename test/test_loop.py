@@ -21,7 +21,8 @@ from sphere_servo.sim.arm import pose_from_xyz_rpy
 from sphere_servo.tools import launcher
 from sphere_servo.vision.renderer import Renderer
 
-EXECUTABLES = ('arm_sim', 'detector', 'features', 'servo', 'launcher', 'record', 'replay')
+EXECUTABLES = ('arm_sim', 'detector', 'features', 'servo', 'launcher', 'record', 'replay',
+               'refeatures')
 
 
 def stamp(msg) -> float:
