@@ -570,23 +570,24 @@ class Detector:
         # j − M … j + K must fit in the profile)
         drop = prof[:, M:P - K] - prof[:, M + 1:P - K + 1]
         drop *= self._drop_weight(L)[:, M:P - K]
-        jj = drop.argmax(axis=1)
-        jj += M
-        jf = jj + np.arange(0, N * P, P)            # flat index of sample j
+        jj = drop.argmax(axis=1)                    # j − M
+        base, pick, win3, win1 = self._indices(N, P, K)
+        jf = jj + base                              # flat index of sample j
         if color:
             # a mixed pixel's V = max(R, G, B) is not linear in its coverage when the
             # background's largest channel is not the body's: measure the step in the one
             # channel with the largest inside − outside contrast (a mark at the limb is as
             # bright as the body in its own channel)
-            flat3 = prof3.reshape(-1, 3)
-            dc = flat3[jf - 1].astype(np.int16) - flat3[jf + K]
+            # the pixels at j − M (body test), j − 1 and j + K (contrast), (N, 3, 3)
+            px3 = prof3.reshape(-1, 3)[jf[:, None] + pick]
+            dc = px3[:, 1].astype(np.int16) - px3[:, 2]
             if rgb is not img:                 # bgr8: ties broken as for rgb8
                 ch = 2 - dc[:, ::-1].argmax(axis=1)
             else:
                 ch = dc.argmax(axis=1)
-            win = prof3.reshape(-1)[(jf * 3 + ch)[:, None] + np.arange(-6, 3 * K + 1, 3)]
+            win = prof3.reshape(-1)[(jf * 3 + ch)[:, None] + win3]
         else:
-            win = prof.reshape(-1)[jf[:, None] + np.arange(-2, K + 1)]
+            win = prof.reshape(-1)[jf[:, None] + win1]
         # win: samples j − 2 … j + K in the chosen channel
         win = win.astype(np.float32)
         i3, i2 = win[:, 0], win[:, 1]
@@ -597,10 +598,8 @@ class Detector:
         if med < self.min_contrast:
             return f'blob contrast {med:.0f} < {self.min_contrast:.0f}'
         # coverage of the samples j … j + K; the M samples inside count 1 each
-        o1 = self._o1(K)
-        S = (i2 - i3)[:, None] * o1
-        S += i2[:, None]
-        S -= i_out[:, None]
+        S = (i2 - i3)[:, None] * self._o1(K)        # S − I_out
+        S += contrast[:, None]
         np.maximum(S, 1e-6, out=S)
         cov = win[:, 2:] - i_out[:, None]
         cov /= S
@@ -609,20 +608,18 @@ class Detector:
         good = (contrast > 0.5 * self.min_contrast) & (csum < 2.5)
         if color:
             # the edge is the body's only where the inside (M px in) is body-coloured
-            body = self._is_body(flat3[jf - M], bgr=rgb is not img)
+            body = self._is_body(px3[:, 0], bgr=rgb is not img)
             if np.count_nonzero(body) < 0.5 * N:
                 return 'blob is not body-coloured'
             good &= body
-        e = csum + (jj - (L + 0.5))                 # offset from the ellipse point
         ng = np.count_nonzero(good)
         if ng < 10:
             return 'too few clean edge points'
+        e = (csum + (jj - (L + 0.5 - M)))[good]     # offset from the ellipse point
+        Gg = G[:, good]
         E = np.empty((3, ng))                       # the edge points, homogeneous rows
-        E[0] = px_[good]
-        E[1] = py_[good]
-        E[2] = e[good]
-        E[0] += E[2] * nx[good]
-        E[1] += E[2] * ny[good]
+        np.multiply(Gg[2:], e, out=E[:2])
+        E[:2] += Gg[:2]
         E[2] = 1.0
         sc = 2.0 / math.sqrt(a0 * a0 + a1 * a1)     # Hartley scale of the coarse ellipse
         C = _fit_conic_xy(E[0], E[1], cx, cy, sc)
@@ -656,6 +653,21 @@ class Detector:
         if o is None:
             o = cls._offs_cache[L] = np.arange(-L, L + 1, dtype=np.float64)
         return o
+
+    _idx_cache: dict = {}
+
+    @classmethod
+    def _indices(cls, N: int, P: int, K: int):
+        """Index helpers of the edge profiles: the flat index of sample M of each of the N
+        profiles (P samples each), the offsets of samples −M, −1, K, and those of the
+        window −2 … K in a 3-channel and a 1-channel profile."""
+        v = cls._idx_cache.get((N, P, K))
+        if v is None:
+            M = K + 1
+            v = cls._idx_cache[(N, P, K)] = (
+                np.arange(M, N * P, P), np.array([-M, -1, K]),
+                np.arange(-6, 3 * K + 1, 3), np.arange(-2, K + 1))
+        return v
 
     _o1_cache: dict = {}
 
@@ -734,7 +746,8 @@ class Detector:
             # components on the selected pixels' box only
             lx, ly, bw, bh = cv2.boundingRect(pts)
             m = np.zeros((bh, bw), np.uint8)
-            ry, rx = pts[:, 1] - ly, pts[:, 0] - lx
+            rel = pts - (lx, ly)
+            ry, rx = rel[:, 1], rel[:, 0]
             m[ry, rx] = 1
             nlab, lab, st, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
             if nlab < 2:
@@ -768,11 +781,11 @@ class Detector:
             rim = None
             if name in self.surface_marks:
                 # coverage by unmixing: pixel = a·shade·mark + b·shade·body, α = a/(a + b)
-                ab = roi[gy0 + yy, gx0 + xx].astype(np.float64) @ self._unmix[name]
+                ab = roi[gy0:gy1, gx0:gx1][yy, xx].astype(np.float64) @ self._unmix[name]
                 alpha = ab[:, 0] / np.maximum(ab[:, 1], 1e-9)
                 np.minimum(np.maximum(alpha, 0.0, out=alpha), 1.0, out=alpha)
-                inner = cv2.erode(full, _K3)[yy, xx] > 0
-                alpha[inner] = 1.0
+                inner = cv2.erode(full, _K3)[yy, xx]       # 1 inside, 0 on the rim
+                np.maximum(alpha, inner, out=alpha)
                 # (nearly) cut by the limb? The distance to the silhouette is concave inside
                 # it, so over the hull's box it is smallest at a corner; the grown pixels are
                 # within 2 px of the hull: only a cap whose box has a corner within
@@ -795,7 +808,7 @@ class Detector:
                     if float(dsil.min()) < self.limb_px:
                         # the visible part's mean is biased; use the boundary with the body,
                         # away from the silhouette
-                        rim = ((~inner) & (alpha > 0.2) & (alpha < 0.8)
+                        rim = ((inner == 0) & (alpha > 0.2) & (alpha < 0.8)
                                & (dsil > self.limb_px + 1.0))
             else:
                 # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
