@@ -286,3 +286,28 @@ def test_balloon_is_detected_with_a_worse_quality_than_a_sphere():
         assert res.found, res.reason
         q[name] = res.quality
     assert q['balloon'] > 5 * q['sphere']
+
+
+def test_conic_helpers_recover_an_ellipse():
+    """fit_conic / sampson_distance / ellipse_params (also used by core.observers): exact on
+    noiseless points of a rotated, off-centre ellipse, whatever the scale of the coordinates
+    (pixels or normalized), and the Sampson distance is the geometric one near the curve."""
+    from sphere_servo.vision.detector import ellipse_params, fit_conic, sampson_distance
+    t = np.linspace(0.0, 2 * np.pi, 37, endpoint=False)[:25]         # a 240° arc
+    for (cx, cy), (a, b), ang in (((412.3, 171.9), (63.0, 41.5), 0.7),
+                                  ((0.21, -0.13), (0.08, 0.05), -1.1)):
+        ca, sa = np.cos(ang), np.sin(ang)
+        xy = np.column_stack([cx + a * ca * np.cos(t) - b * sa * np.sin(t),
+                              cy + a * sa * np.cos(t) + b * ca * np.sin(t)])
+        C = fit_conic(xy)
+        assert abs(np.linalg.norm(C) - 1.0) < 1e-12
+        assert np.abs(sampson_distance(C, xy)).max() < 1e-9 * a
+        (ecx, ecy), (ea, eb), eang = ellipse_params(C)
+        np.testing.assert_allclose([ecx, ecy, ea, eb], [cx, cy, a, b], rtol=1e-9, atol=1e-9 * a)
+        assert abs(np.sin(eang - ang)) < 1e-9
+        # a point δ outside along the normal at t = 0: Sampson ≈ ±δ
+        n = np.array([ca / a, sa / a])
+        n /= np.linalg.norm(n)
+        delta = 1e-3 * b
+        d = sampson_distance(C, (xy[:1] + delta * n))
+        assert abs(abs(d[0]) - delta) < 1e-2 * delta
