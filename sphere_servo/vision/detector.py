@@ -160,43 +160,38 @@ def fit_conic(xy: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     y = xy[:, 1].astype(np.float64)
     n = len(x)
     mx, my = float(x.sum()) / n, float(y.sum()) / n
+    P = _homog(x, y)
     x -= mx
     y -= my
     sc = math.sqrt(2.0 / max(float(np.dot(x, x) + np.dot(y, y)) / n, 1e-300))
-    return _fit_conic_xy(x, y, 0.0, 0.0, sc, weights, mx, my)
+    return _fit_conic_P(P, mx, my, sc, weights)
 
 
-def _fit_conic_xy(x: np.ndarray, y: np.ndarray, mx: float, my: float, sc: float,
-                  weights: np.ndarray | None = None, ox: float = 0.0,
-                  oy: float = 0.0) -> np.ndarray:
-    """:func:`fit_conic` of the points ``(x + ox, y + oy)`` (float64 (N,) each), normalized
-    by ``(p − (mx, my))·sc`` (any centre inside the points and scale ≈ √2 / RMS radius
-    condition the scatter matrix as well as the exact centroid does: the detector passes its
-    coarse ellipse's). Unit Frobenius norm."""
-    D = np.empty((6, len(x)))
-    xs, ys = D[3], D[4]
-    np.subtract(x, mx, out=xs)
-    xs *= sc
-    np.subtract(y, my, out=ys)
-    ys *= sc
-    np.multiply(xs, xs, out=D[0])
-    np.multiply(xs, ys, out=D[1])
-    np.multiply(ys, ys, out=D[2])
+def _fit_conic_P(P: np.ndarray, mx: float, my: float, sc: float,
+                 weights: np.ndarray | None = None) -> np.ndarray:
+    """:func:`fit_conic` of the points given as (3, N) homogeneous rows ``(x, y, 1)``,
+    normalized by ``(p − (mx, my))·sc`` (any centre inside the points and scale ≈ √2 / RMS
+    radius condition the scatter matrix as well as the exact centroid does: the detector
+    passes its coarse ellipse's). Unit Frobenius norm."""
+    D = np.empty((6, P.shape[1]))
+    # rows x'², x'y', y'², x', y', 1 with (x', y') = sc·(p − m): one affine product
+    np.matmul(np.array([[sc, 0.0, -sc * mx], [0.0, sc, -sc * my]]), P, out=D[3:5])
+    np.multiply(D[3:5], D[3], out=D[0:2])
+    np.multiply(D[4], D[4], out=D[2])
     D[5] = 1.0
     S = (D if weights is None else D * weights) @ D.T
     _, _, V = cv2.eigen(S)                 # descending: the last row is the smallest
     a, b, c, d, e, f = V[5].tolist()
-    # back to the input coordinates: x' = sc·(x − mx'), with mx' = mx + ox
-    mx += ox
-    my += oy
+    # back to the input coordinates: x' = sc·(x − mx)
     s2 = sc * sc
     A, B, Cc = a * s2, b * s2, c * s2
     Dx = d * sc - 2.0 * A * mx - B * my
     Ey = e * sc - 2.0 * Cc * my - B * mx
     F = A * mx * mx + B * mx * my + Cc * my * my - sc * (d * mx + e * my) + f
     B, Dx, Ey = 0.5 * B, 0.5 * Dx, 0.5 * Ey
-    nrm = math.sqrt(A * A + Cc * Cc + F * F + 2.0 * (B * B + Dx * Dx + Ey * Ey))
-    return np.array([[A, B, Dx], [B, Cc, Ey], [Dx, Ey, F]]) / nrm
+    k = 1.0 / math.sqrt(A * A + Cc * Cc + F * F + 2.0 * (B * B + Dx * Dx + Ey * Ey))
+    A, B, Cc, Dx, Ey, F = A * k, B * k, Cc * k, Dx * k, Ey * k, F * k
+    return np.array([[A, B, Dx], [B, Cc, Ey], [Dx, Ey, F]])
 
 
 def _homog(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -565,10 +560,9 @@ class Detector:
             prof = np.maximum(np.maximum(prof3[..., 0], prof3[..., 1]), prof3[..., 2])
         else:
             prof = prof3.reshape(N, P)
-        prof = prof.astype(np.float32)
         # the edge lies between samples j and j + 1 where V falls most (the window
         # j − M … j + K must fit in the profile)
-        drop = prof[:, M:P - K] - prof[:, M + 1:P - K + 1]
+        drop = np.subtract(prof[:, M:P - K], prof[:, M + 1:P - K + 1], dtype=np.float32)
         drop *= self._drop_weight(L)[:, M:P - K]
         jj = drop.argmax(axis=1)                    # j − M
         base, pick, win3, win1 = self._indices(N, P, K)
@@ -622,7 +616,7 @@ class Detector:
         E[:2] += Gg[:2]
         E[2] = 1.0
         sc = 2.0 / math.sqrt(a0 * a0 + a1 * a1)     # Hartley scale of the coarse ellipse
-        C = _fit_conic_xy(E[0], E[1], cx, cy, sc)
+        C = _fit_conic_P(E, cx, cy, sc)
         for _ in range(3):
             d = _sampson_P(C, E)
             k = len(d) // 2
@@ -636,7 +630,7 @@ class Detector:
             if nk == len(keep):
                 break
             E = E[:, keep]
-            C = _fit_conic_xy(E[0], E[1], cx, cy, sc)
+            C = _fit_conic_P(E, cx, cy, sc)
         else:
             d = _sampson_P(C, E)
         ep = _ellipse_floats(C.tolist())
