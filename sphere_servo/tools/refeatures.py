@@ -388,7 +388,7 @@ def _auto_desired(pipe: Pipeline, frames: list[Frame], recorded: dict, names: li
         # the first features message under this desired came from an image with its stamp
         # (the first one after lo, or a later re-publication of it when the image taught
         # is that very image); the taught image is the last image before it whose features
-        # reproduce s*
+        # reproduce s* — or that image itself (teaching on the bag's very first frame)
         starts = [k for k in range(lo, len(frames)) if frames[k].stamp == first_stamp]
         if not starts:
             raise BagError(f'the features/{name} message stamped {stamp_text(first_stamp)} '
@@ -396,17 +396,20 @@ def _auto_desired(pipe: Pipeline, frames: list[Frame], recorded: dict, names: li
         tol = TOL * max(1.0, float(np.max(np.abs(star))))
         errs: dict[int, float] = {}
         for start in starts:
-            for k in range(start):
+            for k in range(start + 1):
                 if k not in errs:
                     errs[k] = min(_star_error(pipe, name, m, star) for m in
                                   seen.get(frames[k].stamp, [frames[k].meas]))
-            exact = [k for k in range(start) if errs[k] <= tol]
+            # an image before the first message under s* is the taught one; that message's
+            # own image only when none before it is (teaching on the bag's first frame)
+            exact = [k for k in range(start) if errs[k] <= tol] or \
+                [k for k in (start,) if errs[k] <= tol]
             if exact:
                 best, best_err = exact[-1], 0.0
                 break
         else:
             start = starts[0]
-            best_err, best = min((errs[k], k) for k in range(start))
+            best_err, best = min((errs[k], k) for k in range(start + 1))
             if not np.isfinite(best_err):
                 raise BagError(f'no image before the features/{name} message stamped '
                                f'{stamp_text(first_stamp)} is usable as the taught one: give '
