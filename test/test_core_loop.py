@@ -143,3 +143,25 @@ def test_loop_reports_a_target_lost_at_the_first_step():
     assert not res.converged and res.iterations == 0
     assert res.reason.startswith('target lost') and 'hidden' in res.reason
     assert res.e.shape == (0, 6) and res.v.shape == (0, 6)
+
+
+def test_loop_holds_still_through_a_few_lost_frames():
+    """``max_lost``: a dropped observation holds the camera (zero twist, like the servo
+    node) instead of ending the run; more consecutive drops than allowed end it."""
+    from sphere_servo.core.measurement import MeasurementError
+    target = special_sphere()
+    calls = {'n': 0}
+
+    def flaky(cMo):
+        calls['n'] += 1
+        if calls['n'] > 1 and calls['n'] % 4 == 0:  # every 4th frame after s* is lost
+            raise MeasurementError('mark P1 is hidden (simulated dropout)')
+        return observe(cMo, target)
+
+    res = run_loop(target, CMO_FAR_START, CMO_DESIRED, 's_n', observer=flaky, max_lost=1)
+    assert res.converged, res.reason
+    assert len(res.oMc) == res.iterations  # no pose recorded for a dropped frame
+    assert np.all(np.diff(res.t) > 0) and np.any(np.diff(res.t) > 0.15)  # gaps in time
+    calls['n'] = 0
+    res = run_loop(target, CMO_FAR_START, CMO_DESIRED, 's_n', observer=flaky, max_lost=0)
+    assert not res.converged and 'simulated dropout' in res.reason and res.iterations == 2

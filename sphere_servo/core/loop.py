@@ -71,6 +71,15 @@ class LoopResult:
         return (float(np.linalg.norm(cdMc.translation)),
                 float(np.degrees(np.linalg.norm(pin.log3(cdMc.rotation)))))
 
+    def pose_error_vectors(self, last: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(cdtc (K, 3) m, θu (K, 3) rad)``: pose of each recorded camera w.r.t. the
+        desired one, in the desired camera frame, for the ``last`` K poses (default all)."""
+        cdMo = pin.SE3(self.oMc_desired).inverse()
+        poses = self.oMc if last is None else self.oMc[-last:]
+        M = [cdMo * pin.SE3(oMc) for oMc in poses]
+        return (np.array([m.translation for m in M]).reshape(-1, 3),
+                np.array([pin.log3(m.rotation) for m in M]).reshape(-1, 3))
+
 
 def run_loop(target: Target, cMo_start: pin.SE3, cMo_desired: pin.SE3,
              feature_set: str = 's_n', r_hat: float | None = None,
@@ -78,19 +87,26 @@ def run_loop(target: Target, cMo_start: pin.SE3, cMo_desired: pin.SE3,
              dt: float = 0.1, max_iter: int = 2000, tol: float = 1e-4,
              v_max: float = np.inf, w_max: float = np.inf,
              observer: Observer | None = None,
-             camera: CameraIntrinsics | None = None) -> LoopResult:
+             camera: CameraIntrinsics | None = None, max_lost: int = 0,
+             desired: Observation | None = None) -> LoopResult:
     """Servo a free-flying camera from ``cMo_start`` to ``cMo_desired``.
 
     feature_set  's_n', 's' or 's_cc'; r_hat defaults to the true radius.
     observer     ``cMo -> Observation``; defaults to the exact projection ``observe``.
     camera       if given, ``in_view`` records whether the sphere's centre direction and the
                  marks project inside the image (for visibility statistics).
+    desired      the observation s* is computed from (default ``observer(cMo_desired)``);
+                 give a noise-free one to teach from an averaged image under a noisy observer.
+    max_lost     consecutive failed observations tolerated: the camera holds still (zero
+                 twist, as the ``servo`` node does while the target is lost) and the
+                 iteration is not recorded; one more and the run stops. Only useful with a
+                 noisy observer — an exact one fails the same way again.
     Stops when ‖s − s*‖₂ < tol (converged), after ``max_iter`` iterations, or when the
     target can no longer be observed (reason says why).
     """
     observer = observer or (lambda cMo: observe(cMo, target))
     r_hat = target.radius if r_hat is None else r_hat
-    fs = make_feature_set(feature_set, observer(cMo_desired))
+    fs = make_feature_set(feature_set, desired or observer(cMo_desired))
     ctrl = Controller(fs, r_hat, gain=gain, interaction=interaction, v_max=v_max,
                       w_max=w_max, tol=tol)
     oMc = cMo_start.inverse()
@@ -98,14 +114,19 @@ def run_loop(target: Target, cMo_start: pin.SE3, cMo_desired: pin.SE3,
     Q: dict[str, list] = {}
     in_view = []
     converged, reason = False, 'max_iter'
+    lost = 0
     for k in range(max_iter):
         cMo = oMc.inverse()
         try:
             obs = observer(cMo)
             out = ctrl.compute(obs)
         except GeometryError as exc:  # MeasurementError, ControlError
-            reason = f'target lost: {exc}'
-            break
+            lost += 1
+            if lost > max_lost:
+                reason = f'target lost: {exc}'
+                break
+            continue
+        lost = 0
         S.append(fs.features(obs))
         E.append(out.error)
         B.append(obs.sphere.b)
