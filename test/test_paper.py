@@ -135,3 +135,24 @@ def test_report_numbers_come_from_the_run(tmp_path, cc_compare):
     assert f'{path:.3g}' in text
     for f in cc_compare.figures:
         assert f.exists() and f'({f.name})' in text
+
+
+def test_ros_section_of_the_report(ros_env, tmp_path, monkeypatch):
+    """``make paper --ros``: the special-sphere config through the four ROS processes; the
+    report's row says it converged, with the final ground-truth error against the taught
+    pose (< 1 mm, < 0.1°), and the figures are written and linked."""
+    import io
+    import re
+    pytest.importorskip('rclpy')
+    for k, v in ros_env.items():
+        monkeypatch.setenv(k, v)
+    lines = paper.run_ros(['special_sphere'], tmp_path, log=io.StringIO())
+    row = next(x for x in lines if x.startswith('| special_sphere |'))
+    cells = [c.strip() for c in row.strip('|').split('|')]
+    assert cells[1:3] == ['0', 'yes'] and int(cells[3]) > 50, row
+    assert float(cells[4]) < 1.0 and float(cells[5]) < 0.1, row
+    links = re.findall(r'\]\((ros_special_sphere/[^)]+)\)', '\n'.join(lines))
+    assert links and all((tmp_path / p).stat().st_size > 1000 for p in links)
+    # the table is contiguous: no figure between its rows
+    table = [i for i, x in enumerate(lines) if x.startswith('|')]
+    assert table == list(range(table[0], table[-1] + 1))

@@ -230,6 +230,7 @@ class Supervisor:
         self.last_pose = None
         self.last_meas_stamp = -1.0
         self.t_start = 0.0  # stamp of the first image at the start pose
+        self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
         fset = node_params(config, 'servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
         sub(DiagnosticStatus, 'servo/state', self._on_state, 10)
@@ -238,6 +239,16 @@ class Supervisor:
         if collect:
             sub(JointState, f'features/{fset}', self._on_features, 10)
             sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, 10)
+
+    def final_pose_error(self) -> tuple[float, float] | None:
+        """(m, deg) between the last ground-truth camera pose and the taught one, or None
+        when nothing was taught or no pose arrived."""
+        if self.oMc_taught is None or self.last_pose is None:
+            return None
+        import pinocchio as pin
+        cdMc = self.oMc_taught.inverse() * self.last_pose[1]
+        return (float(np.linalg.norm(cdMc.translation)),
+                float(np.degrees(np.linalg.norm(pin.log3(cdMc.rotation)))))
 
     @staticmethod
     def _t(stamp) -> float:
@@ -323,7 +334,7 @@ class Supervisor:
             return float(np.linalg.norm(err)) < 1e-3
         if not self.wait(at_desired, 30.0, alive):
             raise LaunchError('the arm did not reach the desired pose')
-        t_desired = self.last_pose[0]
+        t_desired, self.oMc_taught = self.last_pose
         end = time.monotonic() + 30.0
         while True:  # teach the first measurement taken at the desired pose
             res = self.call('/features/teach')
