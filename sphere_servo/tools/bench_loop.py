@@ -16,6 +16,7 @@ separate processes (``python -m``), and this process listens. Figures:
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 FEEDER = r'''
-import sys, time, rclpy
+import signal, sys, time, rclpy
 from rclpy.node import Node
 from std_msgs.msg import Header
 from sensor_msgs.msg import Image, CameraInfo
@@ -33,20 +34,22 @@ from sphere_servo.core.scenarios import CMO_DESIRED, CMO_FAR_START
 from sphere_servo.core.targets import special_sphere
 from sphere_servo.nodes.conversions import image_from_array, camera_info_from_intrinsics
 from sphere_servo.vision.renderer import Renderer
-rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+rate = float(sys.argv[1])
 rclpy.init()
 node = Node('bench_feeder')
 pi = node.create_publisher(Image, 'camera/image_raw', 10)
 pc = node.create_publisher(CameraInfo, 'camera/camera_info', 10)
 cam = CameraIntrinsics()
 frames = [Renderer(cam, special_sphere()).render(p) for p in (CMO_DESIRED, CMO_FAR_START)]
-# the first 20 frames show the desired pose (the bench teaches one), then the far pose
-time.sleep(3.0)  # discovery
+# the desired pose until the bench has taught it (SIGUSR1), then the far pose; SIGINT stops
+state = {'frame': 0, 'run': True}
+signal.signal(signal.SIGUSR1, lambda *_: state.update(frame=1))
+signal.signal(signal.SIGINT, lambda *_: state.update(run=False))
 n, t0 = 0, time.monotonic()
-while time.monotonic() - t0 < seconds:
+while state['run']:
     h = Header(stamp=node.get_clock().now().to_msg(), frame_id='camera_optical_frame')
     pc.publish(camera_info_from_intrinsics(cam, h))
-    pi.publish(image_from_array(frames[0 if n < 20 else 1], h))
+    pi.publish(image_from_array(frames[state['frame']], h))
     n += 1
     rclpy.spin_once(node, timeout_sec=0)
     time.sleep(max(0.0, t0 + n / rate - time.monotonic()))
@@ -81,7 +84,7 @@ def _run(rate: float, seconds: float) -> dict:
                                     env=env, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)
              for name in ('detector', 'features', 'servo')}
-    feeder = subprocess.Popen([sys.executable, '-c', FEEDER, str(rate), str(seconds + 1.0)],
+    feeder = subprocess.Popen([sys.executable, '-c', FEEDER, str(rate)],
                               env=env, stdout=subprocess.PIPE, text=True)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(env['ROS_DOMAIN_ID']))
@@ -121,6 +124,7 @@ def _run(rate: float, seconds: float) -> dict:
             fut = cli.call_async(req)
             while not fut.done():
                 ex.spin_once(timeout_sec=0.02)
+        feeder.send_signal(signal.SIGUSR1)  # taught: now the far pose
         img_lat.clear()
         tw_lat.clear()
         tw_stamps.clear()
@@ -128,7 +132,11 @@ def _run(rate: float, seconds: float) -> dict:
         while time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.01)
         rss = {name: _rss_mb(p.pid) for name, p in procs.items()}
+        feeder.send_signal(signal.SIGINT)
         published = feeder.communicate(timeout=30)[0]
+        if not (img_lat and tw_lat):
+            raise RuntimeError(f'nothing measured in {seconds:.0f} s: {len(img_lat)} images, '
+                               f'{len(tw_lat)} twists (feeder: {published.strip()!r})')
     finally:
         for p in [*procs.values(), feeder]:
             if p.poll() is None:
