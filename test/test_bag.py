@@ -167,6 +167,33 @@ def test_interrupted_recording_is_readable(launch, test_node, tmp_path, sig, sto
         assert (meta['compression_mode'], meta['compression_format']) == ('message', 'zstd')
 
 
+def test_interrupt_first_drains_what_arrived(launch, test_node, tmp_path):
+    """A recorder that is behind when Ctrl-C comes (here: stopped with SIGSTOP while a burst
+    is published, then woken with SIGINT pending) takes what its subscriptions already hold
+    before it closes the bag: the whole burst is in it."""
+    node, spin = test_node
+    out = tmp_path / 'bag'
+    rec = launch('record', '-o', str(out), '--topics', '/burst')
+    pub = node.create_publisher(String, '/burst', QoSProfile(
+        depth=200, reliability=ReliabilityPolicy.RELIABLE))
+    spin(15.0, until=lambda: pub.get_subscription_count() > 0 and 'subscribed to' in rec.log())
+    spin(0.3)
+    rec.popen.send_signal(signal.SIGSTOP)
+    try:
+        for i in range(80):
+            pub.publish(String(data=str(i)))
+        spin(0.3)
+        rec.popen.send_signal(signal.SIGINT)
+    finally:
+        rec.popen.send_signal(signal.SIGCONT)
+    # keep our writer alive for the reliable resends while the recorder drains
+    spin(15.0, until=lambda: rec.popen.poll() is not None)
+    assert rec.popen.wait(15) == 0, rec.log()
+    with AnyReader([out], default_typestore=TS) as reader:
+        got = [reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages()]
+    assert got == [str(i) for i in range(80)], (len(got), rec.log())
+
+
 def write_timing_bag(path: Path, storage: StoragePlugin) -> list[int]:
     """A bag with irregular gaps (20–70 ms) on /chatter; returns its timestamps."""
     t, stamps = 1_700_000_000_000_000_000, []

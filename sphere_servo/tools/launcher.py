@@ -16,8 +16,9 @@ and then in the source tree's ``config/``. Executables are resolved as ``ros2 ru
 (``get_package_prefix('sphere_servo')/lib/sphere_servo/<name>``), falling back to
 ``python -m sphere_servo.nodes.<name>`` when the package is not installed (a source
 checkout). Each process's output is forwarded with a ``[name]`` prefix. Ctrl-C (or SIGTERM)
-stops the servo first (its last word is a zero twist), then the others: SIGINT, then SIGKILL
-after 10 s. With ``--until-converged`` the exit code is 0 when the servo reports
+stops the servo first (its last word is a zero twist), then the recorder (while the others
+still live: it takes what is still on its way before closing the bag), then the others:
+SIGINT, then SIGKILL after 10 s. With ``--until-converged`` the exit code is 0 when the servo reports
 ``converged``, 1 on timeout, 3 if a node died, 4 if the teach sequence failed.
 """
 from __future__ import annotations

@@ -106,6 +106,9 @@ class BagSink:
         self.writer = writer
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.counts: dict[str, int] = {}
+        self.received = 0  # messages queued so far (the executor's side)
+        self.fresh = 0     # of those, not a byte-identical repeat of the topic's previous one
+        self._prev: dict[str, bytes] = {}
         self.error: BaseException | None = None
         self._opened = threading.Event()
         self.thread = threading.Thread(target=self._run, name='bag-writer', daemon=True)
@@ -121,6 +124,10 @@ class BagSink:
         return handle
 
     def put(self, handle: _Topic, stamp_ns: int, data: bytes) -> None:
+        self.received += 1
+        if self._prev.get(handle.name) != data:  # (an idle lockstep arm_sim re-publishes)
+            self.fresh += 1
+            self._prev[handle.name] = data
         self.queue.put((handle, stamp_ns, data))
 
     def _run(self) -> None:
@@ -222,6 +229,27 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
     return Recorder()
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def drain(executor, sink: BagSink, quiet: float = 3.5, limit: float = 8.0) -> None:
+    """Take what is still on its way before closing the bag. A recorder sharing two cores
+    with four busy nodes gets the small topics (camera_info, joint_states) of a fast
+    lockstep run in late bursts, up to ~3 s behind their images (Fast DDS's reliable
+    repair, at its 3 s heartbeat, of what the loaded localhost sockets dropped): stopping at
+    once lost the run's last seconds on them. Spins until no new message (repeats of a
+    topic's previous one do not count) has arrived for ``quiet`` s — longer than one
+    heartbeat — and ``limit`` s at most (a live camera keeps sending; the launcher's
+    SIGKILL comes after 10 s)."""
+    end = time.monotonic() + limit
+    last, idle = sink.fresh, time.monotonic()
+    while time.monotonic() < end and time.monotonic() - idle < quiet:
+        executor.spin_once(timeout_sec=0.02)
+        if sink.fresh != last:
+            last, idle = sink.fresh, time.monotonic()
+
+
 def main(args=None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -245,7 +273,11 @@ def main(args=None) -> int:
         return 1
     topics = None if opts.all and opts.topics is None else (opts.topics or DEFAULT_TOPICS)
 
-    rclpy.init(args=args)
+    # rclpy's own handler would shut the context down on Ctrl-C, and then nothing could be
+    # drained: Ctrl-C and SIGTERM raise KeyboardInterrupt instead (as in nodes/params.run)
+    from rclpy.signals import SignalHandlerOptions
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _interrupt)
     node = None
     started = time.monotonic()
     try:
@@ -261,7 +293,14 @@ def main(args=None) -> int:
     finally:
         # a second Ctrl-C must not interrupt closing the bag
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if node is not None:
+            if rclpy.ok():
+                try:
+                    drain(executor, sink)
+                except Exception as err:  # closing the bag matters more
+                    print(f'record: warning: could not drain the queues: {err}',
+                          file=sys.stderr)
             node.destroy_node()
         rclpy.try_shutdown()
         sink.close()
