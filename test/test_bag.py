@@ -194,6 +194,39 @@ def test_interrupt_first_drains_what_arrived(launch, test_node, tmp_path):
     assert got == [str(i) for i in range(80)], (len(got), rec.log())
 
 
+def test_ready_service_names_what_is_not_recorded_yet(launch, test_node, tmp_path):
+    """``/recorder/ready`` (the launcher waits for it before a run): not ready while a topic
+    has no publisher, or while a publisher is not matched (a best-effort one that appeared
+    after the recorder subscribed reliably); ready once every topic is matched."""
+    from std_srvs.srv import Trigger
+    node, spin = test_node
+    rec = launch('record', '-o', str(tmp_path / 'bag'), '--topics', *TOPICS)
+    cli = node.create_client(Trigger, '/recorder/ready')
+    assert spin(20.0, until=cli.service_is_ready), rec.log()
+
+    def ask():
+        fut = cli.call_async(Trigger.Request())
+        assert spin(10.0, until=fut.done), rec.log()
+        return fut.result()
+
+    first = ask()
+    assert not first.success and all(t in first.message for t in TOPICS), first.message
+    img = node.create_publisher(Image, TOPICS[0], 10)
+    wait_for(lambda: (spin(0.1), TOPICS[0] not in ask().message)[1], 20.0,
+             what='the recorder to match the image topic')
+    partial = ask()
+    assert not partial.success and TOPICS[1] in partial.message, partial.message
+    talker = Talker(node)
+    wait_for(lambda: (spin(0.1), ask().success)[1], 20.0, what='the recorder to be ready')
+    assert ask().message == 'recording 3 topics' and talker.matched() and img
+    late = node.create_publisher(String, TOPICS[2], QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    wait_for(lambda: (spin(0.1), not ask().success)[1], 20.0,
+             what='the recorder to see the unmatched publisher')
+    assert f'{TOPICS[2]} (not matched with every publisher yet)' in ask().message
+    assert late and rec.stop() == 0, rec.log()
+
+
 def write_timing_bag(path: Path, storage: StoragePlugin) -> list[int]:
     """A bag with irregular gaps (20–70 ms) on /chatter; returns its timestamps."""
     t, stamps = 1_700_000_000_000_000_000, []

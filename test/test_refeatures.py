@@ -112,6 +112,15 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
                       rf.TWIST_TOPIC: tw['regenerated']}
 
 
+def test_launcher_waits_for_the_recorder_before_the_run(lockstep_run):
+    """``--record``: the teach sequence begins only once the recorder reports that it
+    records every topic, so the bag holds the run from its first taught image (under load the
+    recorder used to discover the servo's topics after the first teach)."""
+    _, log, _ = lockstep_run
+    ready = log.index('[launcher] recording every topic')
+    assert ready < log.index('[launcher] arm at the desired pose'), log[:4000]
+
+
 def test_taught_image_first_in_the_bag(lockstep_run):
     """A bag that starts at the taught image (recording began at the teach, or the bag was
     cut there): the desired is that first image, not a crash on an empty search."""

@@ -18,8 +18,10 @@ and then in the source tree's ``config/``. Executables are resolved as ``ros2 ru
 checkout). Each process's output is forwarded with a ``[name]`` prefix. Ctrl-C (or SIGTERM)
 stops the servo first (its last word is a zero twist), then the recorder (while the others
 still live: it takes what is still on its way before closing the bag), then the others:
-SIGINT, then SIGKILL after 10 s. With ``--until-converged`` the exit code is 0 when the servo reports
-``converged``, 1 on timeout, 3 if a node died, 4 if the teach sequence failed.
+SIGINT, then SIGKILL after 10 s. With ``--record`` the run (teach included) begins once the
+recorder reports that it records every topic. With ``--until-converged`` the exit code is 0
+when the servo reports ``converged``, 1 on timeout, 3 if a node died, 4 if the teach
+sequence failed.
 """
 from __future__ import annotations
 
@@ -43,6 +45,7 @@ MODULES = {'arm_sim': 'sphere_servo.nodes.arm_sim', 'detector': 'sphere_servo.no
            'features': 'sphere_servo.nodes.features', 'servo': 'sphere_servo.nodes.servo',
            'record': 'sphere_servo.tools.record'}
 STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
+RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
 
 
 class LaunchError(RuntimeError):
@@ -314,6 +317,23 @@ class Supervisor:
         finally:
             self.node.destroy_client(cli)
 
+    def wait_recorder(self, timeout: float, alive) -> str | None:
+        """Wait until the recorder records every topic it was asked for (its ``~/ready``
+        service); ``None`` when it does, else what it still waits for after ``timeout`` s.
+        Under load, the recorder discovers a node's topics up to seconds after the node
+        started: a run that began meanwhile would miss its first messages in the bag."""
+        end = time.monotonic() + timeout
+        while True:
+            try:
+                res = self.call('/recorder/ready', max(0.5, end - time.monotonic()))
+            except LaunchError as exc:
+                return str(exc)
+            if res.success:
+                return None
+            if time.monotonic() > end or not alive():
+                return res.message
+            self.spin(0.1)
+
     def teach(self, log, alive) -> None:
         """Arm to the desired pose → teach its image → arm to the start pose → enable the
         servo. The servo must be disabled meanwhile (``start_enabled: false``): a teach
@@ -418,6 +438,10 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
         sup = Supervisor(config, collect=collect,
                          domain_id=int(domain) if domain not in (None, '') else None)
         alive = lambda: not launcher.dead()  # noqa: E731
+        if record:
+            left = sup.wait_recorder(RECORD_READY_TIMEOUT, alive)
+            log('recording every topic' if left is None else
+                f'warning: the run starts before the recorder is ready: {left}')
         if launch.get('teach', True):
             try:
                 sup.teach(log, alive)

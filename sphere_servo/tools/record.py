@@ -6,6 +6,10 @@
 Topics are subscribed raw (serialized CDR, never deserialized) as soon as they appear in the
 graph with a publisher; each message is stamped with its receive time (the node clock when
 ``use_sim_time`` is set) and written by a writer thread, so the executor only queues bytes.
+The service ``/recorder/ready`` (std_srvs/Trigger) answers success once every topic asked for
+is subscribed and matched with each of its publishers (the launcher waits for it before the
+run begins: under load, discovering a node's topics can take seconds); otherwise its message
+names what is still missing.
 The publishers' offered QoS profiles go into metadata.yaml as ``ros2 bag`` writes them
 (rosbag2 format version 9, as Jazzy). Ctrl-C / SIGTERM / ``--duration`` close the bag
 properly: it holds everything received before the interrupt.
@@ -183,6 +187,25 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
             if missing:
                 print(f'record: waiting for {", ".join(missing)}', flush=True)
             self.timer = self.create_timer(0.1, self.discover)
+            from std_srvs.srv import Trigger
+            self.create_service(Trigger, '~/ready', self._srv_ready)
+
+        def missing(self) -> list[str]:
+            """Topics not yet recorded from every publisher the graph shows: a wanted topic
+            not subscribed yet, or a subscription matched with fewer publishers than its
+            topic has."""
+            out = sorted(self.wanted - set(self.subs))
+            for name, sub in sorted(self.subs.items()):
+                if sub.get_publisher_count() < self.count_publishers(name):
+                    out.append(f'{name} (not matched with every publisher yet)')
+            return out
+
+        def _srv_ready(self, request, response):
+            left = self.missing()
+            response.success = not left
+            response.message = (f'recording {len(self.subs)} topics' if not left
+                                else f'waiting for {", ".join(left)}')
+            return response
 
         def discover(self) -> None:
             for name, types in self.get_topic_names_and_types():
