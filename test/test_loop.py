@@ -239,8 +239,10 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
             return sorted(joints, key=lambda tm: _stamp_s(tm[1]))[-k:]
         sup.wait(lambda: all(np.allclose(m.velocity, 0.0) for _, m in newest()), 10.0)
         rest = [m for _, m in newest()]
-        assert all(np.allclose(m.velocity, 0.0) for m in rest), [m.velocity for m in rest]
-        assert len({tuple(np.round(m.position, 12)) for m in rest}) == 1
+        seen = [(round(_stamp_s(m), 4), np.round(m.position, 6).tolist(), list(m.velocity))
+                for _, m in sorted(joints, key=lambda tm: _stamp_s(tm[1]))[-8:]]
+        assert all(np.allclose(m.velocity, 0.0) for m in rest), seen
+        assert len({tuple(np.round(m.position, 12)) for m in rest}) == 1, seen
         run.restart('detector')
         out.flush()
         assert sup.wait(sup.converged, 120.0, lambda: not run.dead()), (
