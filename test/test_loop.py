@@ -5,6 +5,8 @@ their content, then checks clean exit codes. Lockstep simulation: results do not
 the machine's speed."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -318,6 +320,46 @@ def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
     assert 'interrupted: stopping the nodes' in log
     assert 'exit codes:' not in log, log[-2000:]  # every node exited 0
     assert 'Traceback' not in log
+
+
+def _node_pids(domain: str) -> dict[int, str]:
+    """Live (not zombie) processes of installed sphere_servo executables on ``domain``:
+    pid → executable name, from /proc."""
+    found = {}
+    for d in Path('/proc').iterdir():
+        try:
+            cmd = (d / 'cmdline').read_bytes().split(b'\0')
+            env = (d / 'environ').read_bytes().split(b'\0')
+            state = (d / 'stat').read_text().rsplit(')', 1)[1].split()[0]
+        except (OSError, ValueError, IndexError):
+            continue
+        exe = next((c.decode() for c in cmd if b'/lib/sphere_servo/' in c), None)
+        if exe and state != 'Z' and f'ROS_DOMAIN_ID={domain}'.encode() in env:
+            found[int(d.name)] = Path(exe).name
+    return found
+
+
+def test_nodes_die_with_a_killed_launcher(launch, test_node, ros_env):
+    """A launcher killed outright (SIGKILL: no chance to stop its nodes) must not leave
+    orphaned nodes driving the arm: each gets SIGTERM from the kernel and exits cleanly."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    node, spin = test_node
+    states = []
+    node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 10)
+    proc = launch('launcher', '--config', 'special_sphere')
+    assert spin(60.0, until=lambda: bool(states)), proc.log()
+    def nodes():
+        return {pid: name for pid, name in _node_pids(ros_env['ROS_DOMAIN_ID']).items()
+                if pid != proc.popen.pid}
+    started = wait_for(lambda: (lambda f: f if len(f) == 4 else None)(nodes()), 20.0,
+                       what='the four node processes')
+    assert sorted(started.values()) == ['arm_sim', 'detector', 'features', 'servo']
+    proc.popen.kill()
+    proc.popen.wait(5)
+    wait_for(lambda: not nodes(), 20.0,
+             what=f'the nodes {started} to exit after the launcher was killed')
+    log = proc.log()
+    assert 'Traceback' not in log, log[-3000:]
 
 
 def test_desired_features_from_an_image_file(launch, test_node, tmp_path):

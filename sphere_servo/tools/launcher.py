@@ -21,7 +21,9 @@ still live: it takes what is still on its way before closing the bag), then the 
 SIGINT, then SIGKILL after 10 s. With ``--record`` the run (teach included) begins once the
 recorder reports that it records every topic. With ``--until-converged`` the exit code is 0
 when the servo reports ``converged``, 1 on timeout, 3 if a node died, 4 if the teach
-sequence failed.
+sequence failed. On Linux the nodes are terminated (SIGTERM) if the launcher itself dies,
+even by SIGKILL; the kernel ties this to the thread that started them, so start a
+:class:`Launcher` from a thread that outlives the run.
 """
 from __future__ import annotations
 
@@ -135,6 +137,34 @@ def interrupt(popen: subprocess.Popen, timeout: float = 10.0) -> int:
     return popen.returncode
 
 
+def _libc():
+    """libc for prctl, loaded once in the launcher (the forked child must not load it)."""
+    try:
+        import ctypes
+        return ctypes.CDLL(None, use_errno=True)
+    except (OSError, AttributeError):
+        return None
+
+
+_LIBC = _libc() if sys.platform.startswith('linux') else None
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with(parent_pid: int):
+    """``preexec_fn`` of a node (Linux): the kernel sends it SIGTERM when the launcher dies,
+    even by SIGKILL, so no orphaned node keeps driving the arm (SIGTERM is the nodes' clean
+    shutdown: the servo's last word is a zero twist). If the launcher died before this ran,
+    the node is terminated at once."""
+    libc = _LIBC
+
+    def preexec():
+        if libc is not None:
+            libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+            if os.getppid() != parent_pid:
+                os.kill(os.getpid(), signal.SIGTERM)
+    return preexec
+
+
 @dataclass
 class Child:
     name: str
@@ -184,7 +214,8 @@ class Launcher:
     def _spawn(self, name: str, cmd: list[str]) -> None:
         env = dict(self.env if self.env is not None else os.environ, PYTHONUNBUFFERED='1')
         popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                 text=True, env=env, start_new_session=True)
+                                 text=True, env=env, start_new_session=True,
+                                 preexec_fn=_die_with(os.getpid()))
         t = threading.Thread(target=_forward, args=(name, popen.stdout, self.out), daemon=True)
         t.start()
         self.children[name] = Child(name, popen, t)
