@@ -63,31 +63,52 @@ def headless(out: Path, gain: float, dt: float) -> tuple[bool, list]:
     return ok, files
 
 
+def run_window(sup) -> dict:
+    """What the figures show of a ROS run, from the launcher's supervisor's histories: the
+    servo run from the first image at the start pose (``sup.t_start``) on. The teach sequence
+    before it (the arm at the desired pose measured against an earlier teach, the jump to the
+    start) is not part of the run. Camera positions are in the taught camera frame (the ground
+    truth of the taught image; the last pose when nothing was taught), so the trajectory ends
+    where the servo really stopped.
+
+    Returns ``t`` (n,) s from the start, ``e`` (n, 6) s − s*, ``v`` (n, 6) the twist sent for
+    each features message (zero if none), ``cd_p`` (m, 3) camera centres in the taught frame,
+    ``b`` (k, 3) and ``marks`` {name: (k, 3)} unit rays of the detected sphere centre and
+    marks (camera frame)."""
+    t_start = sup.t_start
+    feats = [f for f in sup.features if f[0] >= t_start]
+    poses = [(t, M) for t, M in sup.poses if t >= t_start]
+    meas = [(t, m) for t, m in sup.measurements if t >= t_start and 'b_x' in m]
+    tw = dict(sup.twists)  # twist by image stamp
+    t0 = feats[0][0] if feats else t_start
+    oMcd = sup.oMc_taught if sup.oMc_taught is not None else (
+        pin.SE3(poses[-1][1]) if poses else pin.SE3.Identity())
+    cdMo = oMcd.inverse()
+    marks = {}
+    for name in ('P1', 'P2', 'P3'):
+        rows = [[m[f'{name}_qx'], m[f'{name}_qy'], m[f'{name}_qz']] for _, m in meas
+                if f'{name}_qx' in m]
+        if rows:
+            marks[name] = np.array(rows)
+    return {'t': np.array([f[0] - t0 for f in feats]),
+            'e': np.array([f[1] - f[2] for f in feats]).reshape(-1, 6),
+            'v': np.array([tw.get(f[0], np.zeros(6)) for f in feats]).reshape(-1, 6),
+            'cd_p': np.array([cdMo.act(pin.SE3(M).translation) for _, M in poses]
+                             ).reshape(-1, 3),
+            'b': np.array([[m['b_x'], m['b_y'], m['b_z']] for _, m in meas]).reshape(-1, 3),
+            'marks': marks}
+
+
 def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Path]:
-    """Fig. 3 and Fig. 4 from what the launcher's supervisor collected."""
+    """Fig. 3 and Fig. 4 of the run :func:`run_window` selects."""
+    w = run_window(sup)
     files = []
-    if sup.features and sup.twists:
-        t0 = sup.features[0][0]
-        t = np.array([f[0] for f in sup.features]) - t0
-        e = np.array([f[1] - f[2] for f in sup.features])
-        tw = dict(sup.twists)  # twist by image stamp
-        v = np.array([tw.get(f[0], np.zeros(6)) for f in sup.features])
-        files.append(fig3(t, e, v, FEATURE_NAMES[feature_set], out / 'fig3.png', title))
-    if sup.poses and sup.measurements:
-        t_start = sup.features[0][0] if sup.features else sup.poses[0][0]
-        poses = [(t, M) for t, M in sup.poses if t >= t_start]
-        meas = [(t, m) for t, m in sup.measurements if t >= t_start and 'b_x' in m]
-        oMcd = pin.SE3(poses[-1][1])  # the converged pose stands for the desired one
-        cdMo = oMcd.inverse()
-        pts = np.array([cdMo.act(pin.SE3(M).translation) for _, M in poses])
-        b = np.array([[m['b_x'], m['b_y'], m['b_z']] for _, m in meas])
-        marks = {}
-        for name in ('P1', 'P2', 'P3'):
-            rows = [[m[f'{name}_qx'], m[f'{name}_qy'], m[f'{name}_qz']] for _, m in meas
-                    if f'{name}_qx' in m]
-            if rows:
-                marks[name] = np.array(rows)
-        files.append(fig4({feature_set: Trajectory(pts, b, marks)}, out / 'fig4.png', title))
+    if len(w['t']):
+        files.append(fig3(w['t'], w['e'], w['v'], FEATURE_NAMES[feature_set],
+                          out / 'fig3.png', title))
+    if len(w['cd_p']) and len(w['b']):
+        files.append(fig4({feature_set: Trajectory(w['cd_p'], w['b'], w['marks'])},
+                          out / 'fig4.png', title))
     return files
 
 

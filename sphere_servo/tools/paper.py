@@ -480,13 +480,14 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
     """The key scenarios' configs through the ROS 2 loop (``launcher.run``); figures via the
     demo's ``ros_figures``. Returns report lines."""
     from . import launcher
-    from .demo import ros_figures
+    from .demo import ros_figures, run_window
     lines = ['## Through the ROS 2 loop', '',
              'The same scenarios as four rclpy processes over DDS (`launcher --config <name> '
              '--until-converged`, lockstep): teach at the desired pose, jump to the start, '
              'servo on the detected image. Final error: last ground-truth camera pose against '
              'the taught one.', '',
-             '| config | exit code | converged | features messages | final error (mm) | '
+             '| config | exit code | converged | features messages from the start | '
+             'final error (mm) | '
              'final error (°) |', '|---|---|---|---|---|---|']
     figures = []
     for name in names:
@@ -503,7 +504,7 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
         err = None if sup is None else sup.final_pose_error()
         et, er = ('—', '—') if err is None else (f'{1e3 * err[0]:.2f}', f'{err[1]:.3f}')
         lines.append(f'| {sc.ros} | {code} | {_fmt(code == 0)} | '
-                     f'{len(sup.features) if sup is not None else 0} | '
+                     f'{len(run_window(sup)["t"]) if sup is not None else 0} | '
                      f'{et} | {er} |')
         figures += [f'### {sc.ros}', ''] + [f'![{f.stem}]({sub.name}/{f.name})' for f in figs] \
             + ['']
