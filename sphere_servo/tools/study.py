@@ -473,12 +473,14 @@ def main(argv=None) -> int:
     ap.add_argument('--seed', type=int, default=0)
     args = ap.parse_args(argv)
     out = Path(args.out)
+    resumed = len(load(out / 'runs.jsonl')) if args.resume else 0
     t0 = time.perf_counter()
     rows = run_study(args.n, min(args.n_images, args.n), out, args.resume, args.workers,
                      args.seed)
     wall = time.perf_counter() - t0
+    # the wall clock says how long the study takes only if this call ran every run
     rep = write_report(rows, out, args.n, min(args.n_images, args.n),
-                       None if args.resume else wall, args.workers)
+                       None if resumed else wall, args.workers)
     print(f'[study] wrote {rep}')
     return 0
 
