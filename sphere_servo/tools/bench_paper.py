@@ -91,7 +91,6 @@ def run(quick: bool = False) -> list[dict]:
     projected_min = cpu / 2 / 60
     # our loop's time per iteration (s_n, exact observation) vs the peer's IBVS step
     tgt = cc_target()
-    res = run_loop(tgt, poses[0], CMO_DESIRED, 's_n', max_iter=200, tol=1e-12)
     t_loop = _median_s(lambda: run_loop(tgt, poses[0], CMO_DESIRED, 'ibvs', max_iter=100,
                                         tol=1e-12), 3) / 100 * 1e6
     peer, why = _peer_us()
@@ -109,7 +108,6 @@ def run(quick: bool = False) -> list[dict]:
          'baseline': peer, 'baseline_name': 'mvtb IBVS.step' if peer else
          f'mvtb IBVS unavailable: {why}', 'ratio': t_loop / peer if peer else None,
          'target': ''}]
-    del res
     return rows
 
 
