@@ -110,11 +110,15 @@ def test_translation_and_rotation_in_lockstep(launch, probe):
     assert probe.status[-1].message == 'ok'
     # the go_desired service jumps to the IK solution of desired_cMo and publishes its image
     n = len(probe.images)
-    assert probe.call('go_desired').success
+    res = probe.call('go_desired')
+    assert res.success
     assert probe.spin(WAIT, until=lambda: len(probe.images) > n and
                       probe.poses[-1].header.stamp == probe.images[-1].header.stamp)
     oMc_des = pose_from_xyz_rpy([0, 0, 0.45], [0, 0, 0]).inverse()  # config/arm_sim.yaml
     assert np.allclose(probe.oMc().homogeneous, oMc_des.homogeneous, atol=1e-5)
+    # the reply names the stamp of the first image at the new pose
+    assert float(res.message.rsplit(' ', 1)[-1]) == pytest.approx(
+        _stamp(probe.images[n]), abs=1e-9), res.message
     assert proc.stop() == 0, proc.log()  # SIGINT, as Ctrl-C
 
 

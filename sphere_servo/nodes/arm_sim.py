@@ -269,7 +269,10 @@ class ArmSim(Node):
         self.arm.t += self.dt  # one period passes, so the new image has a new stamp
         self._waiting = self.lockstep
         self._publish_state()
-        response.success, response.message = True, f'at {what}: q={np.round(q, 4).tolist()}'
+        # the stamp ends the reply, so a caller knows which images show the new pose
+        response.success, response.message = True, (
+            f'at {what}: q={np.round(q, 4).tolist()}, first image stamped '
+            f'{START_TIME + self.arm.t:.9f}')
         self.get_logger().info(response.message)
         return response
 

@@ -76,9 +76,12 @@ def run_window(sup) -> dict:
     ``b`` (k, 3) and ``marks`` {name: (k, 3)} unit rays of the detected sphere centre and
     marks (camera frame)."""
     t_start = sup.t_start
-    feats = [f for f in sup.features if f[0] >= t_start]
-    poses = [(t, M) for t, M in sup.poses if t >= t_start]
-    meas = [(t, m) for t, m in sup.measurements if t >= t_start and 'b_x' in m]
+
+    def run(history):  # by stamp: under load some messages are delivered late
+        return sorted((h for h in history if h[0] >= t_start), key=lambda h: h[0])
+    feats = run(sup.features)
+    poses = run(sup.poses)
+    meas = [(t, m) for t, m in run(sup.measurements) if 'b_x' in m]
     tw = dict(sup.twists)  # twist by image stamp
     t0 = feats[0][0] if feats else t_start
     oMcd = sup.oMc_taught if sup.oMc_taught is not None else (

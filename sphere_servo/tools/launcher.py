@@ -48,6 +48,7 @@ MODULES = {'arm_sim': 'sphere_servo.nodes.arm_sim', 'detector': 'sphere_servo.no
            'record': 'sphere_servo.tools.record'}
 STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
+HISTORY_DEPTH = 1000  # the supervisor's subscriptions to the per-frame topics
 
 
 class LaunchError(RuntimeError):
@@ -268,12 +269,14 @@ class Supervisor:
         self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
         fset = node_params(config, 'servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
+        # deep histories: under load Fast DDS repairs what loaded sockets dropped in bursts of
+        # up to seconds of messages, which a shallow keep-last history would mostly discard
         sub(DiagnosticStatus, 'servo/state', self._on_state, 10)
-        sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, 10)
-        sub(JointState, 'detector/measurement', self._on_meas, 10)
+        sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, HISTORY_DEPTH)
+        sub(JointState, 'detector/measurement', self._on_meas, HISTORY_DEPTH)
         if collect:
-            sub(JointState, f'features/{fset}', self._on_features, 10)
-            sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, 10)
+            sub(JointState, f'features/{fset}', self._on_features, HISTORY_DEPTH)
+            sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, HISTORY_DEPTH)
 
     def final_pose_error(self) -> tuple[float, float] | None:
         """(m, deg) between the last ground-truth camera pose and the taught one, or None
@@ -294,10 +297,14 @@ class Supervisor:
         self.state_values = {kv.key: kv.value for kv in msg.values}
 
     def _on_pose(self, msg) -> None:
+        """``last_pose``: the newest ground truth by stamp (a late delivery of an older pose
+        must not make the arm look back where it was)."""
         from sphere_servo.nodes.conversions import se3_from_pose
-        self.last_pose = (self._t(msg.header.stamp), se3_from_pose(msg.pose))
+        pose = (self._t(msg.header.stamp), se3_from_pose(msg.pose))
+        if self.last_pose is None or pose[0] >= self.last_pose[0]:
+            self.last_pose = pose
         if self.collect:
-            self.poses.append((self.last_pose[0], self.last_pose[1].homogeneous.copy()))
+            self.poses.append((pose[0], pose[1].homogeneous.copy()))
 
     def _on_meas(self, msg) -> None:
         t = self._t(msg.header.stamp)
@@ -378,15 +385,16 @@ class Supervisor:
         if not res.success:
             raise LaunchError(f'go_desired failed: {res.message}')
         log(f'arm at the desired pose: {res.message}')
+        t_desired = _stamp_in(res.message)  # the first image at the desired pose
 
         def at_desired():
-            if self.last_pose is None:
+            if self.last_pose is None or self.last_pose[0] < t_desired - 1e-9:
                 return False
             err = (cMo_d * self.last_pose[1]).translation  # cMo_d · oMc ≈ identity
             return float(np.linalg.norm(err)) < 1e-3
         if not self.wait(at_desired, 30.0, alive):
             raise LaunchError('the arm did not reach the desired pose')
-        t_desired, self.oMc_taught = self.last_pose
+        self.oMc_taught = self.last_pose[1]
         end = time.monotonic() + 30.0
         while True:  # teach the first measurement taken at the desired pose
             res = self.call('/features/teach')
@@ -401,9 +409,10 @@ class Supervisor:
         res = self.call('/arm_sim/go_start')
         if not res.success:
             raise LaunchError(f'go_start failed: {res.message}')
-        if not self.wait(lambda: not at_desired(), 30.0, alive):
+        self.t_start = _stamp_in(res.message)  # the first image at the start pose
+        if not self.wait(lambda: self.last_pose[0] >= self.t_start - 1e-9 and not at_desired(),
+                         30.0, alive):
             raise LaunchError('the arm did not leave the desired pose')
-        self.t_start = self.last_pose[0]
         log(f'arm at the start pose: {res.message}')
         self.enable_servo(log)
 
@@ -428,7 +437,8 @@ class Supervisor:
 
 
 def _stamp_in(message: str) -> float:
-    """The stamp 'sec.nanosec' at the end of the features node's teach reply."""
+    """The stamp 'sec.nanosec' that ends the features node's teach reply and arm_sim's
+    go_* replies; -1 if there is none."""
     try:
         return float(message.rsplit(' ', 1)[-1])
     except ValueError:
