@@ -168,30 +168,48 @@ def test_detector_survives_garbage_images(launch, test_node):
 
 
 def test_servo_safety(launch, test_node):
-    """Zero twist when waiting, when the target is lost, on a malformed or NaN input, and as
-    the last word on Ctrl-C; a real twist carries the image stamp."""
+    """Zero twist when waiting, when the target is lost, on a malformed or NaN input, on an
+    image older than ``timeout`` (a late delivery), and as the last word on Ctrl-C; a real
+    twist carries the image stamp and its age in servo/state."""
+    from diagnostic_msgs.msg import DiagnosticStatus
     from sphere_servo.nodes.vectors import features_msg
     node, spin = test_node
-    twists, stamped = [], []
+    twists, stamped, states = [], [], []
     node.create_subscription(Twist, 'camera/cmd_vel', twists.append, 50)
     node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append, 50)
+    node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 100)
     pub = node.create_publisher(JointState, 'features/s_n', 10)
     proc = launch('servo', '--ros-args', '-p', 'timeout:=0.3')
     assert spin(20.0, until=lambda: len(twists) > 3), proc.log()  # waiting: zeros
     assert all(_norm(t) == 0 for t in twists)
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
-    pub.publish(features_msg('s_n', header(5.0, 'cam'), s, s_star))
-    assert spin(5.0, until=lambda: any(stamp(m) == 5.0 for m in stamped)), proc.log()
-    moving = [m for m in stamped if stamp(m) == 5.0][0]
+    # image stamps on the servo's (wall) clock, as a camera driver stamps them
+    now = node.get_clock().now().nanoseconds * 1e-9
+    t_ok = round(now, 3)
+    pub.publish(features_msg('s_n', header(t_ok, 'cam'), s, s_star))
+    assert spin(5.0, until=lambda: any(stamp(m) == t_ok for m in stamped)), proc.log()
+    moving = [m for m in stamped if stamp(m) == t_ok][0]
     assert _norm(moving.twist) > 0
-    for i, msg in enumerate([features_msg('s_n', header(6.0, 'cam')),           # lost
-                             features_msg('s_n', header(7.0, 'cam'), s * np.nan, s_star),
-                             JointState(header=header(8.0, 'cam'), name=['x'], position=[1.0])]):
+    assert spin(5.0, until=lambda: any(m.message == 'servoing' for m in states))
+    state = [m for m in states if m.message == 'servoing'][-1]
+    age = float({kv.key: kv.value for kv in state.values}['image_age'])
+    assert 0.0 <= age < 0.3, age
+    cases = [(features_msg('s_n', header(t_ok + 0.001, 'cam')), 'target lost'),   # lost
+             (features_msg('s_n', header(t_ok + 0.002, 'cam'), s * np.nan, s_star),
+              'target lost'),
+             (JointState(header=header(t_ok + 0.003, 'cam'), name=['x'], position=[1.0]),
+              'target lost'),
+             (features_msg('s_n', header(t_ok - 2.0, 'cam'), s, s_star), 'stale')]  # late
+    for msg, why in cases:
         pub.publish(msg)
-        t = 6.0 + i
+        t = stamp(msg)
         assert spin(5.0, until=lambda: any(stamp(m) == t for m in stamped)), proc.log()
         assert _norm([m for m in stamped if stamp(m) == t][0].twist) == 0
+        assert spin(5.0, until=lambda: any(m.message == why and {kv.key: kv.value for kv in
+                                                                  m.values}.get('stamp', '')
+                                           .startswith(str(int(t))) for m in states))
+    assert 's old (timeout 0.3 s)' in proc.log()
     twists.clear()
     assert proc.stop() == 0
     spin(0.5)

@@ -9,16 +9,19 @@ Publishes
                                 ``waiting | disabled | servoing | converged | target lost |
                                 stale``;
                                 values: error_norm, converged, target_lost, iteration, gain,
-                                saturated, stamp
+                                saturated, stamp, image_age (s: the node clock at the
+                                twist's publication − the image stamp)
 
 Services
     ``~/enable``                std_srvs/SetBool  start/stop servoing (with ``start_enabled:
                                 false`` the servo sends zero twists until enabled: the
                                 launcher teaches the desired image meanwhile)
 
-Safety: a zero twist is sent while disabled, when the target or a mark is lost (empty features), when the
-last features are older than ``timeout`` (wall seconds: a dead detector stops the arm even
-when simulated time is frozen), when the law cannot give a finite twist, and on shutdown.
+Safety: a zero twist is sent while disabled, when the target or a mark is lost (empty
+features), when the features' image is older than ``timeout`` on the node's clock (sim time
+with ``use_sim_time``: a late delivery is not acted upon), when no features have come for
+``timeout`` wall seconds (a dead detector stops the arm even when simulated time is frozen),
+when the law cannot give a finite twist, and on shutdown.
 
 ``feature_set`` ∈ {s_n, s}: their interaction matrices depend on s only (eqs. 6 and 16).
 """
@@ -63,8 +66,9 @@ PARAMS = {
     'w_max': Param(1.0, 'rotational speed limit (rad/s)', range=(1e-6, 100.0),
                    read_only=True),
     'tol': Param(1e-3, 'converged when ‖s − s*‖₂ < tol', range=(1e-12, 10.0), read_only=True),
-    'timeout': Param(0.5, 'zero twist when the last features are older than this (wall s)',
-                     range=(0.01, 60.0), read_only=True),
+    'timeout': Param(0.5, 'zero twist when the features\' image is older than this (s, node '
+                     'clock) or none came for this long (wall s)', range=(0.01, 60.0),
+                     read_only=True),
     'start_enabled': Param(True, 'servo at once; false: send zero twists until ~/enable',
                            read_only=True),
 }
@@ -135,6 +139,10 @@ class ServoNode(Node):
             return self._publish_state('disabled', DiagnosticStatus.OK, msg.header.stamp,
                                        converged=False, target_lost=False)
         self.iteration += 1
+        age = self._age(msg.header.stamp)
+        if age > self.timeout:
+            return self._stop('stale', f'image {age:.3f} s old (timeout {self.timeout} s)',
+                              msg.header)
         try:
             fs = features_from_msg(msg, self.feature_set)
             if fs is None:
@@ -148,7 +156,14 @@ class ServoNode(Node):
         self._publish_state('converged' if out.converged else 'servoing', DiagnosticStatus.OK,
                             msg.header.stamp, error_norm=f'{out.error_norm:.6g}',
                             converged=out.converged, target_lost=False,
-                            gain=f'{out.gain:.4g}', saturated=out.saturated)
+                            gain=f'{out.gain:.4g}', saturated=out.saturated,
+                            image_age=f'{self._age(msg.header.stamp):.6f}')
+
+    def _age(self, stamp) -> float:
+        """Seconds from the image stamp to now on the node's clock (negative if the clock is
+        behind, e.g. no /clock yet with use_sim_time)."""
+        return (self.get_clock().now().nanoseconds
+                - (stamp.sec * 1_000_000_000 + stamp.nanosec)) * 1e-9
 
     def _watchdog(self) -> None:
         if self.last_rx is None:

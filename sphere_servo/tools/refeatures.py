@@ -486,13 +486,14 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
 
 
 def disabled_stamps(states: list) -> set[int]:
-    """Stamps of the images the recorded servo answered while disabled (its ``~/enable``
-    switch is not in the images; ``servo/state`` says it: message ``disabled``, value
-    ``stamp``)."""
+    """Stamps of the images the recorded servo answered with a zero twist for a reason the
+    images do not carry: while disabled (its ``~/enable`` switch) or because the features
+    reached it too late (``stale``); ``servo/state`` says it: that message, value
+    ``stamp``."""
     out = set()
     for _, m in states:
         vals = {kv.key: kv.value for kv in m.values}
-        if m.message == 'disabled' and 'stamp' in vals:
+        if m.message in ('disabled', 'stale') and 'stamp' in vals:
             sec, _, frac = vals['stamp'].partition('.')
             try:
                 out.add(int(sec) * 1_000_000_000 + int((frac + '0' * 9)[:9] or 0))
