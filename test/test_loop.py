@@ -276,13 +276,23 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
                                                              .read_text()[-3000:])
 
 
+def _exact_measurement(cMo, target, t: float):
+    """``detector/measurement`` of the exact projection of ``target`` seen from ``cMo``."""
+    from sphere_servo.core.measurement import observe
+    from sphere_servo.nodes.vectors import measurement_msg
+    from sphere_servo.vision.detector import Detection, Mark
+    obs = observe(cMo, target)
+    det = Detection(True, '', None, obs.sphere, 0.0, 0.0, ((320.0, 240.0), (60.0, 60.0), 0.0),
+                    {k: Mark(k, np.array([320.0, 240.0]), q[:2] / q[2], True)
+                     for k, q in obs.q.items()})
+    return measurement_msg(det, header(t, 'cam'))
+
+
 def test_features_node_carries_stamps_and_teaches(launch, test_node):
     """features: no output before a desired exists; ~/teach takes the latest measurement;
     then every measurement gives features stamped with its header, s − s* = 0 on the taught
     image; an empty measurement gives an empty (target lost) features message."""
     from std_srvs.srv import Trigger
-    from sphere_servo.core.measurement import observe
-    from sphere_servo.vision.detector import Detection, Mark
     from sphere_servo.nodes.vectors import measurement_msg
     node, spin = test_node
     feats = []
@@ -290,12 +300,8 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
     pub = node.create_publisher(JointState, 'detector/measurement', 10)
     proc = launch('features')
     assert spin(20.0, until=lambda: pub.get_subscription_count() > 0), proc.log()
-    obs = observe(CMO_DESIRED, special_sphere())
-    det = Detection(True, '', None, obs.sphere, 0.0, 0.0, ((320.0, 240.0), (60.0, 60.0), 0.0),
-                    {k: Mark(k, np.array([320.0, 240.0]), q[:2] / q[2], True)
-                     for k, q in obs.q.items()})
     for t in (1.5, 1.6, 1.7):
-        pub.publish(measurement_msg(det, header(t, 'cam')))
+        pub.publish(_exact_measurement(CMO_DESIRED, special_sphere(), t))
         spin(0.2)
     assert not feats  # nothing before the desired is set
     cli = node.create_client(Trigger, '/features/teach')
@@ -304,7 +310,7 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
     assert spin(10.0, until=fut.done) and fut.result().success, fut.result()
     assert fut.result().message.endswith('1.700000000')
     for t in (2.0, 2.1):
-        pub.publish(measurement_msg(det, header(t, 'cam')))
+        pub.publish(_exact_measurement(CMO_DESIRED, special_sphere(), t))
         spin(0.2)
     pub.publish(measurement_msg(None, header(2.2, 'cam')))
     assert spin(10.0, until=lambda: len(feats) >= 3), proc.log()
@@ -312,6 +318,69 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
     assert np.allclose(feats[0].effort, 0.0) and np.allclose(feats[0].position[:3],
                                                              CMO_DESIRED.translation / 0.05)
     assert len(feats[2].name) == 0
+    assert proc.stop() == 0
+
+
+def test_features_desired_from_a_pose_in_the_parameters(launch, test_node):
+    """desired_source: pose — s* is the exact projection from ``desired_cMo``: a
+    measurement at that pose gives s − s* = 0, one from elsewhere gives the ground-truth
+    error ((t − t*)/r for s_n,t; log(ᶜ*R_c) = log(R* Rᵀ) for θu)."""
+    import pinocchio as pin
+    node, spin = test_node
+    target = special_sphere()
+    xyz, rpy = [0.02, -0.01, 0.5], [0.2, -0.1, 0.3]
+    cMo_d = pose_from_xyz_rpy(xyz, rpy)
+    feats = []
+    node.create_subscription(JointState, 'features/s_n', feats.append, 50)
+    pub = node.create_publisher(JointState, 'detector/measurement', 10)
+    proc = launch('features', '--ros-args', '-p', 'desired_source:=pose', '-p',
+                  f'desired_cMo:={xyz + rpy}')
+    assert spin(20.0, until=lambda: pub.get_subscription_count() > 0), proc.log()
+    pub.publish(_exact_measurement(cMo_d, target, 2.0))
+    pub.publish(_exact_measurement(CMO_DESIRED, target, 2.1))
+    assert spin(10.0, until=lambda: len(feats) >= 2), proc.log()
+    at, away = feats[:2]
+    np.testing.assert_allclose(at.effort, 0.0, atol=1e-9)
+    np.testing.assert_allclose(at.velocity[:3], cMo_d.translation / target.radius, atol=1e-9)
+    e_t = (CMO_DESIRED.translation - cMo_d.translation) / target.radius
+    e_r = pin.log3(cMo_d.rotation @ CMO_DESIRED.rotation.T)
+    np.testing.assert_allclose(away.effort, np.concatenate([e_t, e_r]), atol=1e-9)
+    assert proc.stop() == 0
+
+
+def test_detector_overlay_draws_the_published_ellipse(launch, test_node):
+    """publish_overlay: the frame with the detection drawn, under the image's header; the
+    green ellipse lies where the measurement says."""
+    node, spin = test_node
+    overlays, meas = [], []
+    node.create_subscription(Image, 'detector/overlay', overlays.append, 10)
+    node.create_subscription(JointState, 'detector/measurement', meas.append, 10)
+    pub_img = node.create_publisher(Image, 'camera/image_raw', 10)
+    pub_info = node.create_publisher(CameraInfo, 'camera/camera_info', 10)
+    proc = launch('detector', '--ros-args', '-p', 'publish_overlay:=true')
+    assert spin(20.0, until=lambda: pub_img.get_subscription_count() > 0
+                and pub_info.get_subscription_count() > 0), proc.log()
+    img_msg, info = _render_msgs(2.0)
+    for _ in range(50):  # volatile QoS: until the camera_info has matched
+        pub_info.publish(info)
+        spin(0.1)
+        pub_img.publish(img_msg)
+        if spin(0.3, until=lambda: overlays and meas and 'b_x' in meas[-1].name):
+            break
+    assert overlays, proc.log()
+    ov = overlays[-1]
+    assert (stamp(ov), ov.header.frame_id) == (2.0, 'camera_optical_frame')
+    assert (ov.encoding, ov.width, ov.height) == ('rgb8', 640, 480)
+    frame = np.frombuffer(bytes(ov.data), np.uint8).reshape(480, 640, 3).astype(int)
+    plain = np.frombuffer(bytes(img_msg.data), np.uint8).reshape(480, 640, 3).astype(int)
+    green = (frame[..., 1] > 200) & (frame[..., 0] < 90) & (frame[..., 2] < 90) & \
+        (np.abs(frame - plain).sum(axis=2) > 60)
+    v, u = np.nonzero(green)
+    vals = dict(zip(meas[-1].name, meas[-1].position))
+    assert u.size > 200
+    r = np.hypot(u - vals['ellipse_u'], v - vals['ellipse_v'])
+    half = (vals['ellipse_minor'] / 2, vals['ellipse_major'] / 2)
+    assert np.all((r > half[0] - 2) & (r < half[1] + 2)), (r.min(), r.max(), half)
     assert proc.stop() == 0
 
 
