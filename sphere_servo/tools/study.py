@@ -17,7 +17,7 @@ noise      σ = 1 px Gaussian noise on 64 contour points and on the marks       
 images     rendered images (grey-level noise σ = 2) + the real detector       renderer+detector
 balloon    ellipsoid 6 × 5.5 × 4.5 cm, r̂ = 6.5 cm (s_cc n/a: no tangent tip)  exact obs.
 arm        ideal, with the UR5 in the loop (``paper.run_arm``) and the robot    exact obs.
-           cell's safety limit wrist_1 ≤ −0.98 rad (``paper.JL_CELL_LIMITS``);
+           cell's safety limit elbow ≤ 2.04 rad (``paper.JL_CELL_LIMITS``);
            starts the arm cannot reach inside its limits are left out
 =========  =================================================================  ===========
 
@@ -320,6 +320,15 @@ def _pct(s: dict, cond: str, fs: str, cause: str) -> str:
     return f'{100.0 * _count(s, cond, fs, cause) / n:.1f} %' if n else 'n/a'
 
 
+def cell_limit() -> tuple[str, str]:
+    """(joint name, text) of the ``arm`` condition's cell safety limit
+    (``paper.JL_CELL_LIMITS``, one joint)."""
+    from .paper import JL_CELL_LIMITS, cell_limits_text, make_arm
+    names = make_arm().joint_names
+    (j, _), = JL_CELL_LIMITS.items()
+    return names[j], cell_limits_text(JL_CELL_LIMITS, names)
+
+
 def why_runs_fail(rows: list, s: dict) -> list[str]:
     """The failure mechanisms, each with its counts from this study (looked at run by run
     while writing it: the image/joint trajectories of failing runs, see the module doc)."""
@@ -329,6 +338,7 @@ def why_runs_fail(rows: list, s: dict) -> list[str]:
     arm_hits = {fs: {why.split(': ')[1]: k for why, k in s.get(('arm', fs), {})
                      .get('reasons', {}).items() if why.startswith('joint_limit')}
                 for fs in SETS}
+    cell = cell_limit()[0]
     return [
         '## Why runs fail', '',
         f"- **s leaves the image** ({_pct(s, 'ideal', 's', 'left')} of ideal runs, "
@@ -359,9 +369,9 @@ def why_runs_fail(rows: list, s: dict) -> list[str]:
         'recovered by intersecting its ray with the plane tangent to the sphere at P1; seen '
         'almost edge-on through wrong intrinsics that intersection falls behind the camera and '
         'the partial pose cannot be computed, so the run stops as target lost.',
-        f"- **Joint limits (arm)**: wrist_1 at the cell's safety limit (s_cc "
-        f"{arm_hits['s_cc'].get('wrist_1_joint', 0)}, s_n {arm_hits['s_n'].get('wrist_1_joint', 0)}, "
-        f"s {arm_hits['s'].get('wrist_1_joint', 0)}, ibvs {arm_hits['ibvs'].get('wrist_1_joint', 0)} runs) "
+        f"- **Joint limits (arm)**: {cell} at the cell's safety limit (s_cc "
+        f"{arm_hits['s_cc'].get(cell, 0)}, s_n {arm_hits['s_n'].get(cell, 0)}, "
+        f"s {arm_hits['s'].get(cell, 0)}, ibvs {arm_hits['ibvs'].get(cell, 0)} runs) "
         f"and wrist_3 at its own −2π limit (s_cc {arm_hits['s_cc'].get('wrist_3_joint', 0)}, s_n "
         f"{arm_hits['s_n'].get('wrist_3_joint', 0)}, s {arm_hits['s'].get('wrist_3_joint', 0)}): when "
         'a start needs a roll near 180°, θu takes the short way round, which for a wrist that '
@@ -434,9 +444,10 @@ def write_report(rows: list, out: Path, n: int, n_images: int, wall: float | Non
                          f"{v['iters']:.0f} | {v['ratio']:.3f} | {v['left']:.1f} % | "
                          + ('n/a |' if v['joint_limit'] is None else f"{v['joint_limit']:.1f} % |"))
     n_arm = len({r['idx'] for r in rows if r['cond'] == 'arm' and not r.get('excluded')})
+    cell_limit_text = cell_limit()[1]
     lines += ['', 'Joint-limit hits are counted in the `arm` condition only: the UR5 in the loop '
               '(config/arm_sim.yaml placement, half joint speed) with its own limits plus the '
-              'cell\'s safety limit wrist_1 ≤ −0.98 rad of the docs/paper joint-limit scenario; '
+              f'cell\'s safety limit {cell_limit_text} of the docs/paper joint-limit scenario; '
               f'{n_arm} of the {n} starts are reachable inside those limits and are counted '
               'there. The other conditions servo a free-flying camera.', '',
               f's_n draws a shorter camera path than s_cc in **{100 * frac:.1f} %** of the '
