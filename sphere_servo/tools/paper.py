@@ -397,19 +397,26 @@ def _balloon_images(sc: Scenario, path: Path) -> Path:
     return save(fig, path, dpi=80)
 
 
-def _joint_plot(res_by_set: dict, path: Path) -> Path:
-    """Joint positions vs time with the limits (arm scenario)."""
+def _joint_plot(res_by_set: dict, path: Path, cell_limits: dict | None = None) -> Path:
+    """Joint positions vs time with the UR5's own limits of wrist_3 (±2π) and the elbow (±π)
+    dotted, and the cell's safety limits dashed red (arm scenario)."""
     import matplotlib.pyplot as plt
 
     from .plots import save
+    own = make_arm()
     fig, axes = plt.subplots(1, len(res_by_set), figsize=(11, 3.6), squeeze=False)
     for ax, (fs, res) in zip(axes[0], res_by_set.items()):
-        lo, hi, names = res.joint_limits
+        names = res.joint_limits[2]
         t = np.arange(len(res.joints)) * DT
         for j, nm in enumerate(names):
             ax.plot(t, res.joints[:, j], label=nm.replace('_joint', ''))
-        for y in (hi[-1], lo[-1], hi[2], lo[2]):
+        for y in (own.upper[-1], own.lower[-1], own.upper[2], own.lower[2]):
             ax.axhline(y, color='k', lw=0.6, ls=':')
+        for j, bounds in (cell_limits or {}).items():
+            for y in bounds:
+                if y is not None:
+                    ax.axhline(y, color='r', lw=0.9, ls='--',
+                               label=f'cell limit ({cell_limits_text({j: bounds}, names)})')
         ax.set_title(f'{fs}: {res.reason}')
         ax.set_xlabel('time (s)')
         ax.set_ylabel('joint position (rad)')
@@ -430,7 +437,7 @@ def figures(r: ScenarioResult, out: Path) -> list[Path]:
     if sc.figure == 'balloon':
         files.append(_balloon_images(sc, out / f'{sc.name}_images.png'))
     if sc.arm:
-        files.append(_joint_plot(r.runs, out / f'{sc.name}_joints.png'))
+        files.append(_joint_plot(r.runs, out / f'{sc.name}_joints.png', sc.cell_limits))
     r.figures = [shrink_png(f) for f in files]
     return r.figures
 
