@@ -65,17 +65,20 @@ def headless(out: Path, gain: float, dt: float) -> tuple[bool, list]:
 
 def run_window(sup) -> dict:
     """What the figures show of a ROS run, from the launcher's supervisor's histories: the
-    servo run from the first image at the start pose (``sup.t_start``) on. The teach sequence
+    servo run from the first image the enabled servo answered at the start pose
+    (``sup.t_enabled``, else the first image there, ``sup.t_start``) on. The teach sequence
     before it (the arm at the desired pose measured against an earlier teach, the jump to the
-    start) is not part of the run. Camera positions are in the taught camera frame (the ground
+    start, the frames until the servo is enabled) is not part of the run. Camera positions are in the taught camera frame (the ground
     truth of the taught image; the last pose when nothing was taught), so the trajectory ends
     where the servo really stopped.
 
     Returns ``t`` (n,) s from the start, ``e`` (n, 6) s − s*, ``v`` (n, 6) the twist sent for
     each features message (zero if none), ``cd_p`` (m, 3) camera centres in the taught frame,
     ``b`` (k, 3) and ``marks`` {name: (k, 3)} unit rays of the detected sphere centre and
-    marks (camera frame)."""
-    t_start = sup.t_start
+    marks (camera frame), and ``iterations``: the servo's count of its iterations up to the
+    first it called converged (None if it did not; the run goes on after that while the
+    launcher stops the nodes, so the histories' length depends on timing, not this count)."""
+    t_start = sup.t_enabled if getattr(sup, 't_enabled', None) is not None else sup.t_start
 
     def run(history):  # by stamp: under load some messages are delivered late
         return sorted((h for h in history if h[0] >= t_start), key=lambda h: h[0])
@@ -99,7 +102,8 @@ def run_window(sup) -> dict:
             'cd_p': np.array([cdMo.act(pin.SE3(M).translation) for _, M in poses]
                              ).reshape(-1, 3),
             'b': np.array([[m['b_x'], m['b_y'], m['b_z']] for _, m in meas]).reshape(-1, 3),
-            'marks': marks}
+            'marks': marks,
+            'iterations': getattr(sup, 'iterations_converged', None)}
 
 
 def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Path]:

@@ -28,6 +28,7 @@ even by SIGKILL; the kernel ties this to the thread that started them, so start 
 from __future__ import annotations
 
 import argparse
+import collections
 import copy
 import os
 import signal
@@ -266,6 +267,13 @@ class Supervisor:
         self.last_pose = None
         self.last_meas_stamp = -1.0
         self.t_start = 0.0  # stamp of the first image at the start pose
+        self.t_enabled = None    # stamp of the first image the enabled servo answered
+        self.t_converged = None  # stamp of the first image the servo called converged, after
+        #                          t_start, and the servo's iteration count there (it counts
+        #                          enabled iterations only: the same from run to run)
+        self.iterations_converged = None
+        self._clients: dict = {}
+        self.recent_poses = collections.deque(maxlen=HISTORY_DEPTH)  # (stamp, oMc)
         self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
         fset = node_params(config, 'servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
@@ -277,14 +285,26 @@ class Supervisor:
         if collect:
             sub(JointState, f'features/{fset}', self._on_features, HISTORY_DEPTH)
             sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, HISTORY_DEPTH)
+        from std_srvs.srv import SetBool
+        for service in ('/arm_sim/go_desired', '/features/teach', '/arm_sim/go_start'):
+            self.client(service)
+        self.client('/servo/enable', SetBool)
+
+    def pose_at(self, t: float | None):
+        """The ground-truth pose of the image stamped ``t``, if it has arrived."""
+        if t is None:
+            return None
+        return next((M for s, M in reversed(self.recent_poses) if abs(s - t) < 1e-6), None)
 
     def final_pose_error(self) -> tuple[float, float] | None:
-        """(m, deg) between the last ground-truth camera pose and the taught one, or None
-        when nothing was taught or no pose arrived."""
-        if self.oMc_taught is None or self.last_pose is None:
+        """(m, deg) between the taught pose and the ground truth of the image the servo
+        first called converged (the newest pose if that one has not arrived, or the servo
+        did not converge), or None when nothing was taught or no pose arrived."""
+        pose = self.pose_at(self.t_converged) or (self.last_pose and self.last_pose[1])
+        if self.oMc_taught is None or pose is None:
             return None
         import pinocchio as pin
-        cdMc = self.oMc_taught.inverse() * self.last_pose[1]
+        cdMc = self.oMc_taught.inverse() * pose
         return (float(np.linalg.norm(cdMc.translation)),
                 float(np.degrees(np.linalg.norm(pin.log3(cdMc.rotation)))))
 
@@ -294,7 +314,20 @@ class Supervisor:
 
     def _on_state(self, msg) -> None:
         self.state = msg.message
-        self.state_values = {kv.key: kv.value for kv in msg.values}
+        self.state_values = vals = {kv.key: kv.value for kv in msg.values}
+        if msg.message not in ('servoing', 'converged'):
+            return
+        try:
+            t = float(vals.get('stamp', '-1'))
+        except ValueError:
+            return
+        if t < self.t_start:
+            return
+        if self.t_enabled is None or t < self.t_enabled:
+            self.t_enabled = t
+        if msg.message == 'converged' and (self.t_converged is None or t < self.t_converged):
+            self.t_converged = t
+            self.iterations_converged = int(vals.get('iteration', -1))
 
     def _on_pose(self, msg) -> None:
         """``last_pose``: the newest ground truth by stamp (a late delivery of an older pose
@@ -303,6 +336,7 @@ class Supervisor:
         pose = (self._t(msg.header.stamp), se3_from_pose(msg.pose))
         if self.last_pose is None or pose[0] >= self.last_pose[0]:
             self.last_pose = pose
+        self.recent_poses.append(pose)
         if self.collect:
             self.poses.append((pose[0], pose[1].homogeneous.copy()))
 
@@ -343,17 +377,24 @@ class Supervisor:
         (or raises LaunchError)."""
         from std_srvs.srv import SetBool, Trigger
         srv = Trigger if enable is None else SetBool
-        cli = self.node.create_client(srv, service)
-        try:
-            if not self.wait(cli.service_is_ready, timeout):
-                raise LaunchError(f'service {service} not available after {timeout} s')
-            req = srv.Request() if enable is None else SetBool.Request(data=enable)
-            fut = cli.call_async(req)
-            if not self.wait(fut.done, timeout):
-                raise LaunchError(f'service {service} did not answer in {timeout} s')
-            return fut.result()
-        finally:
-            self.node.destroy_client(cli)
+        cli = self.client(service, srv)
+        if not self.wait(cli.service_is_ready, timeout):
+            raise LaunchError(f'service {service} not available after {timeout} s')
+        req = srv.Request() if enable is None else SetBool.Request(data=enable)
+        fut = cli.call_async(req)
+        if not self.wait(fut.done, timeout):
+            raise LaunchError(f'service {service} did not answer in {timeout} s')
+        return fut.result()
+
+    def client(self, service: str, srv=None):
+        """The (kept) client of ``service``: made once, so that discovery of a client made
+        early has happened by the time it is called (a fresh client per call took seconds
+        to be matched under load, holding the arm at the start pose)."""
+        if service not in self._clients:
+            if srv is None:
+                from std_srvs.srv import Trigger as srv
+            self._clients[service] = self.node.create_client(srv, service)
+        return self._clients[service]
 
     def wait_recorder(self, timeout: float, alive) -> str | None:
         """Wait until the recorder records every topic it was asked for (its ``~/ready``
@@ -507,7 +548,14 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
                 log(f"servo {sup.state}: iteration {v.get('iteration', '?')}, "
                     f"‖s − s*‖ = {v.get('error_norm', '?')}")
             if until_converged and sup.converged():
-                log(f"converged after {sup.state_values.get('iteration')} iterations")
+                log(f'converged after {sup.iterations_converged} iterations')
+                # the final error is judged on that image's ground truth (small topics can
+                # come late under load)
+                sup.wait(lambda: sup.pose_at(sup.t_converged) is not None, 5.0)
+                err = sup.final_pose_error()
+                if err is not None:
+                    log(f'final error against the taught pose: {err[0] * 1e3:.6f} mm, '
+                        f'{err[1]:.6f}°')
                 break
             if until_converged and now - t0 > timeout:
                 log(f'not converged within {timeout} s')

@@ -515,9 +515,8 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
              '--until-converged`, lockstep): teach at the desired pose, jump to the start, '
              'servo on the detected image. Final error: last ground-truth camera pose against '
              'the taught one.', '',
-             '| config | exit code | converged | features messages from the start | '
-             'final error (mm) | '
-             'final error (°) |', '|---|---|---|---|---|---|']
+             '| config | exit code | converged | iterations from the start | '
+             'final error (mm) | final error (°) |', '|---|---|---|---|---|---|']
     figures = []
     for name in names:
         sc = SCENARIOS[name]
@@ -531,9 +530,10 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
         figs = [] if sup is None else [
             shrink_png(f) for f in ros_figures(sup, sub, f'{sc.ros} over ROS 2', fset)]
         err = None if sup is None else sup.final_pose_error()
+        iters = None if sup is None else run_window(sup)['iterations']
         et, er = ('—', '—') if err is None else (f'{1e3 * err[0]:.2f}', f'{err[1]:.3f}')
         lines.append(f'| {sc.ros} | {code} | {_fmt(code == 0)} | '
-                     f'{len(run_window(sup)["t"]) if sup is not None else 0} | '
+                     f'{"—" if iters is None else iters} | '
                      f'{et} | {er} |')
         figures += [f'### {sc.ros}', ''] + [f'![{f.stem}]({sub.name}/{f.name})' for f in figs] \
             + ['']
