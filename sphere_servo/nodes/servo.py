@@ -17,11 +17,17 @@ Services
                                 false`` the servo sends zero twists until enabled: the
                                 launcher teaches the desired image meanwhile)
 
+Each image is answered once, from the newest features: a subscription of depth 1 (a backlog
+is skipped), a repeat of the last image's features is ignored, and so are features whose
+image is older than ``max_image_age`` on the node's clock (sim time with ``use_sim_time``).
+In lockstep ``max_image_age: 0`` answers only the current frame: each command steps the
+simulator, so answering a superseded frame would leave several frames in flight and the
+servo acting on old images (and the run would depend on the machine's load).
+
 Safety: a zero twist is sent while disabled, when the target or a mark is lost (empty
-features), when the features' image is older than ``timeout`` on the node's clock (sim time
-with ``use_sim_time``: a late delivery is not acted upon), when no features have come for
-``timeout`` wall seconds (a dead detector stops the arm even when simulated time is frozen),
-when the law cannot give a finite twist, and on shutdown.
+features), when no usable features have come for ``timeout`` wall seconds (a dead detector,
+or only late images, stop the arm even when simulated time is frozen), when the law cannot
+give a finite twist, and on shutdown.
 
 ``feature_set`` ∈ {s_n, s}: their interaction matrices depend on s only (eqs. 6 and 16).
 """
@@ -66,9 +72,11 @@ PARAMS = {
     'w_max': Param(1.0, 'rotational speed limit (rad/s)', range=(1e-6, 100.0),
                    read_only=True),
     'tol': Param(1e-3, 'converged when ‖s − s*‖₂ < tol', range=(1e-12, 10.0), read_only=True),
-    'timeout': Param(0.5, 'zero twist when the features\' image is older than this (s, node '
-                     'clock) or none came for this long (wall s)', range=(0.01, 60.0),
-                     read_only=True),
+    'timeout': Param(0.5, 'zero twists when no usable features came for this long (wall s)',
+                     range=(0.01, 60.0), read_only=True),
+    'max_image_age': Param(0.5, "skip features whose image is older than this on the node's "
+                           'clock (s); 0: only the current frame (lockstep)', range=(0.0, 60.0),
+                           read_only=True),
     'start_enabled': Param(True, 'servo at once; false: send zero twists until ~/enable',
                            read_only=True),
 }
@@ -86,11 +94,18 @@ class ServoNode(Node):
                                     interaction=p['interaction'], v_max=p['v_max'],
                                     w_max=p['w_max'], tol=p['tol'])
         self.feature_set, self.timeout = p['feature_set'], p['timeout']
+        self.max_age_ns = int(round(p['max_image_age'] * 1e9))
+        self.skipped = 0  # features skipped as older than max_image_age
         self.pub_twist = self.create_publisher(Twist, 'camera/cmd_vel', 100)
         self.pub_stamped = self.create_publisher(TwistStamped, 'camera/cmd_vel_stamped', 100)
         self.pub_state = self.create_publisher(DiagnosticStatus, 'servo/state', 100)
+        # latest wins: a twist is computed from the newest features only. A backlog (Fast
+        # DDS delivers small topics late, in bursts, under load) answered message by message
+        # would send a twist per stale frame: in lockstep each one steps the simulator, and
+        # the loop would go on with several frames in flight, acting on old images.
         self.create_subscription(JointState, f'features/{self.feature_set}', self._on_features,
-                                 10)
+                                 1)
+        self.last_stamp = None  # image stamp of the last features answered
         self.enabled = p['start_enabled']
         self.create_service(SetBool, '~/enable', self._srv_enable)
         self.last_rx = None  # wall time of the last features
@@ -133,16 +148,24 @@ class ServoNode(Node):
         return response
 
     def _on_features(self, msg: JointState) -> None:
+        stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        if stamp == self.last_stamp:  # the same image again (a re-publication): answered
+            return
+        age_ns = self._age_ns(msg.header.stamp)
+        if age_ns > self.max_age_ns:  # superseded or late: not usable, not answered
+            self.skipped += 1
+            self.get_logger().info(
+                f'skipping features of an image {age_ns * 1e-9:.3f} s old (max_image_age '
+                f'{self.max_age_ns * 1e-9:g} s; {self.skipped} so far)',
+                throttle_duration_sec=2.0)
+            return
         self.last_rx = time.monotonic()
+        self.last_stamp = stamp
         if not self.enabled:
             self._send(np.zeros(6), msg.header)
             return self._publish_state('disabled', DiagnosticStatus.OK, msg.header.stamp,
                                        converged=False, target_lost=False)
         self.iteration += 1
-        age = self._age(msg.header.stamp)
-        if age > self.timeout:
-            return self._stop('stale', f'image {age:.3f} s old (timeout {self.timeout} s)',
-                              msg.header)
         try:
             fs = features_from_msg(msg, self.feature_set)
             if fs is None:
@@ -157,13 +180,12 @@ class ServoNode(Node):
                             msg.header.stamp, error_norm=f'{out.error_norm:.6g}',
                             converged=out.converged, target_lost=False,
                             gain=f'{out.gain:.4g}', saturated=out.saturated,
-                            image_age=f'{self._age(msg.header.stamp):.6f}')
+                            image_age=f'{self._age_ns(msg.header.stamp) * 1e-9:.6f}')
 
-    def _age(self, stamp) -> float:
-        """Seconds from the image stamp to now on the node's clock (negative if the clock is
-        behind, e.g. no /clock yet with use_sim_time)."""
-        return (self.get_clock().now().nanoseconds
-                - (stamp.sec * 1_000_000_000 + stamp.nanosec)) * 1e-9
+    def _age_ns(self, stamp) -> int:
+        """Nanoseconds from the image stamp to now on the node's clock (negative if the
+        clock is behind, e.g. no /clock yet with use_sim_time)."""
+        return self.get_clock().now().nanoseconds - (stamp.sec * 1_000_000_000 + stamp.nanosec)
 
     def _watchdog(self) -> None:
         if self.last_rx is None:
@@ -171,7 +193,7 @@ class ServoNode(Node):
             self._publish_state('waiting', DiagnosticStatus.OK, reason='no features yet',
                                 converged=False, target_lost=False)
         elif time.monotonic() - self.last_rx > self.timeout:
-            self._stop('stale', f'no features for more than {self.timeout} s')
+            self._stop('stale', f'no usable features for more than {self.timeout} s')
 
     def on_shutdown(self) -> None:
         """Last word: a zero twist."""

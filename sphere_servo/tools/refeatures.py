@@ -469,14 +469,16 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
     res.streams[MEAS_TOPIC] = [(f.bag_ns, f.meas) for f in frames]
     streams = {features_topic(n): [] for n in want}
     twists = []
-    disabled = disabled_stamps(res.recorded.get(STATE_TOPIC) or [])
+    disabled, answered = state_stamps(res.recorded.get(STATE_TOPIC) or [])
     for f, d in active(res):
         if pipe.desired_obs is not d.obs:
             _anchor(pipe, d, want)
         out = pipe.features(f.meas)
         for n, msg in out.items():
             streams[features_topic(n)].append((f.bag_ns, msg))
-        if servo:
+        # the recorded servo said which images it answered: it skips superseded or late
+        # ones (max_image_age), so those get no twist offline either
+        if servo and (not answered or f.stamp in answered):
             twists.append((f.bag_ns, pipe.twist(out[settings.servo['feature_set']],
                                                 enabled=f.stamp not in disabled)))
     res.streams.update({features_topic(n): streams[features_topic(n)] for n in names})
@@ -485,21 +487,25 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
     return res
 
 
-def disabled_stamps(states: list) -> set[int]:
-    """Stamps of the images the recorded servo answered with a zero twist for a reason the
-    images do not carry: while disabled (its ``~/enable`` switch) or because the features
-    reached it too late (``stale``); ``servo/state`` says it: that message, value
-    ``stamp``."""
-    out = set()
+def state_stamps(states: list) -> tuple[set[int], set[int]]:
+    """From the recorded ``servo/state``: the stamps of the images the servo answered while
+    disabled (its ``~/enable`` switch is not in the images; message ``disabled``), and of
+    every image it answered at all (each answer carries the value ``stamp``; empty when the
+    bag has no servo states)."""
+    disabled, answered = set(), set()
     for _, m in states:
         vals = {kv.key: kv.value for kv in m.values}
-        if m.message in ('disabled', 'stale') and 'stamp' in vals:
-            sec, _, frac = vals['stamp'].partition('.')
-            try:
-                out.add(int(sec) * 1_000_000_000 + int((frac + '0' * 9)[:9] or 0))
-            except ValueError:
-                continue
-    return out
+        if 'stamp' not in vals:
+            continue
+        sec, _, frac = vals['stamp'].partition('.')
+        try:
+            t = int(sec) * 1_000_000_000 + int((frac + '0' * 9)[:9] or 0)
+        except ValueError:
+            continue
+        answered.add(t)
+        if m.message == 'disabled':
+            disabled.add(t)
+    return disabled, answered
 
 
 def active(res: Result):
