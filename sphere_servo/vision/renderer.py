@@ -226,37 +226,83 @@ class Renderer:
         f = (self.gain * (self.ambient + self.diffuse * shade)).astype(np.float32)
         return label, f
 
-    @staticmethod
-    def _present(lab: np.ndarray, k: int) -> bool:
-        return bool((lab == k).any())
-
     def _trace_cc(self, x, y, cMo, label, depth, shade):
         """Depth-tested stick (cylinder P1→P3) and tip ball at P3 of the CC target, in the
         camera frame. ``depth`` is the parameter s of the camera ray ``s (x, y, 1)`` at the
-        body hit (∞ on a miss). Returns the updated ``(label, shade)``."""
+        body hit (∞ on a miss). Returns the updated ``(label, shade)``.
+
+        On the separable pixel grid (``x`` a (1, w) row, ``y`` an (h, 1) column) each part is
+        traced only in its own image box: the tip ball's silhouette box, and for the stick
+        the box of its two end balls of the stick's radius (the cylinder lies in their
+        convex hull, whose image lies in the hull of theirs)."""
         A = np.asarray(cMo.act(self.target.oP1), dtype=float)
         B = np.asarray(cMo.act(self.target.oP2), dtype=float)
         light = self.light_dir / np.linalg.norm(self.light_dir)
-        lx, ly, lz = light.tolist()
-        B0, B1, B2 = B.tolist()
-        # tip ball |s d − B|² = ρ²
+        # label, shade and depth are full, writable arrays of the rays' broadcast shape (see
+        # _trace); the parts write into them in place
+        grid = x.ndim == 2 and x.shape[0] == 1 and y.shape[1:] == (1,)
+        for part, balls in ((self._trace_tip, [(B, self.tip_radius)]),
+                            (self._trace_stick, [(A, self.stick_radius),
+                                                 (B, self.stick_radius)])):
+            win = self._window(x, y, balls) if grid else (slice(None), slice(None))
+            if win is None:
+                continue
+            rows, cols = win
+            xs, ys = (x[:, cols], y[rows, :]) if grid else (x, y)
+            sub = (rows, cols) if grid else Ellipsis
+            part(xs, ys, A, B, light, label[sub], shade[sub], depth[sub])
+        return label, shade
+
+    @staticmethod
+    def _window(x, y, balls):
+        """(rows, cols) slices of the separable grid ``x`` (1, w), ``y`` (h, 1) whose rays can
+        meet one of ``balls`` [(centre in the camera frame, radius)], None if none can, the
+        whole grid if a ball is not entirely in front of the camera."""
+        boxes = []
+        for c, rad in balls:
+            dist = float(np.linalg.norm(c))
+            if c[2] <= rad * 1.0001:
+                return slice(None), slice(None)
+            b = c / dist
+            box = conic_bbox(np.outer(b, b) - (1.0 - (rad / dist) ** 2) * np.eye(3))
+            if box is None:
+                return slice(None), slice(None)
+            boxes.append(box)
+        x0, x1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
+        y0, y1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
+        xr, yc = x[0], y[:, 0]                 # increasing (pixel → normalized, no distortion)
+        c0, c1 = np.searchsorted(xr, x0) - 1, np.searchsorted(xr, x1) + 1
+        r0, r1 = np.searchsorted(yc, y0) - 1, np.searchsorted(yc, y1) + 1
+        c0, r0 = max(c0, 0), max(r0, 0)
+        if c0 >= min(c1, xr.size) or r0 >= min(r1, yc.size):
+            return None
+        return slice(r0, r1), slice(c0, c1)
+
+    def _trace_tip(self, x, y, A, B, light, label, shade, depth):
+        """Tip ball ``|s d − B|² = ρ²``: writes TIP, its shade and depth where it is the
+        nearest surface (``label``, ``shade``, ``depth``: views, updated in place)."""
         rho = self.tip_radius
+        B0, B1, B2 = B.tolist()
+        lx, ly, lz = light.tolist()
         dd = x * x + y * y + 1.0
         dB = x * B0 + y * B1 + B2
         disc = dB * dB - dd * float(B @ B - rho * rho)
         s = (dB - np.sqrt(np.maximum(disc, 0.0))) / dd
         on = (disc > 0) & (s > 0) & (s < depth)
-        dl = x * lx + y * ly + lz
-        lam = (s * dl - float(B @ light)) * (1.0 / rho)
-        label = np.where(on, np.uint8(TIP), label)
-        shade = np.where(on, np.maximum(lam, 0.0), shade)
-        depth = np.where(on, s, depth)
-        # stick: infinite cylinder of axis A + σ w, radius ρ, clipped to σ ∈ [0, L]
+        lam = (s * (x * lx + y * ly + lz) - float(B @ light)) * (1.0 / rho)
+        label[on] = TIP
+        shade[on] = np.maximum(np.broadcast_to(lam, on.shape)[on], 0.0)
+        depth[on] = np.broadcast_to(s, on.shape)[on]
+
+    def _trace_stick(self, x, y, A, B, light, label, shade, depth):
+        """Stick: the cylinder of axis ``A + σ w``, radius ρ, clipped to σ ∈ [0, L] (same
+        in-place contract as :meth:`_trace_tip`)."""
         w = B - A
         L = np.linalg.norm(w)
         w = w / L
         rho = self.stick_radius
         w0, w1, w2 = w.tolist()
+        lx, ly, lz = light.tolist()
         dw = x * w0 + y * w1 + w2
         mx, my, mz = x - dw * w0, y - dw * w1, 1.0 - dw * w2
         k0, k1, k2 = (-A + (A @ w) * w).tolist()      # −A projected ⟂ w
@@ -267,10 +313,10 @@ class Renderer:
         sig = s * dw - float(A @ w)             # (s d − A)·w
         on = (disc > 0) & (s > 0) & (s < depth) & (sig >= 0) & (sig <= float(L))
         # normal = (s d − A − σ w)/ρ; its dot with the light
-        lam = (s * dl - float(A @ light) - sig * float(w @ light)) * (1.0 / rho)
-        label = np.where(on, np.uint8(STICK), label)
-        shade = np.where(on, np.maximum(lam, 0.0), shade)
-        return label, shade
+        lam = (s * (x * lx + y * ly + lz) - float(A @ light) - sig * float(w @ light)) \
+            * (1.0 / rho)
+        label[on] = STICK
+        shade[on] = np.maximum(lam[on], 0.0)
 
     # --- image -----------------------------------------------------------------------
     def _bbox(self, cMo: pin.SE3):
@@ -335,12 +381,13 @@ class Renderer:
             # per-channel shaded colour f·albedo, uint8 (rounded, saturated)
             chans = [cv2.convertScaleAbs(f, alpha=float(self.albedo[BODY, c]))
                      for c in range(3)]
-            present = [k for k in range(MARK1, TIP + 1) if self._present(lab, k)]
-            for k in present:
-                sel = lab == k
-                fk = f[sel]
+            # the marks, stick and tip pixels (labels above BODY) through one mask
+            sel = lab > BODY
+            if sel.any():
+                vals = np.clip(f[sel][:, None] * self.albedo[lab[sel]] + 0.5, 0, 255
+                               ).astype(np.uint8)
                 for c in range(3):
-                    chans[c][sel] = np.clip(fk * self.albedo[k, c] + 0.5, 0, 255)
+                    chans[c][sel] = vals[:, c]
             roi = img[v0:v1, u0:u1]
             # anti-aliasing: pixels whose label differs from a 4-neighbour's are re-traced
             # with 16 stratified sub-samples and blended with the background (box filter)
