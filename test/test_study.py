@@ -74,3 +74,20 @@ def test_arm_condition_counts_joint_limit_hits_and_leaves_out_unreachable_starts
     s = study.summarize(rows)
     assert s[('arm', 's_n')]['n'] == len(reach) // 2 and s[('arm', 's_n')]['joint_limit'] == 0
     assert s[('arm', 's_cc')]['joint_limit'] == pytest.approx(100 * 2 / (len(reach) // 2))
+
+
+def test_arm_run_ends_where_a_singularity_stops_the_arm():
+    """ibvs's camera retreat stretches the UR5 out until the arm node stops it at its
+    singularity threshold: the run ends there with that reason (it used to wait, unmoving,
+    for max_iter)."""
+    from sphere_servo.core.scenarios import CMO_DESIRED
+    from sphere_servo.tools import paper
+    poses = study.start_poses(20, seed=0)
+    res = paper.run_arm(cc_target(), poses[19], CMO_DESIRED, 'ibvs', gain=study.ADAPTIVE,
+                        max_iter=study.MAX_ITER, arm=paper.make_arm(paper.JL_CELL_LIMITS),
+                        camera=study.CAM)
+    assert res.reason == paper.SINGULAR_STOP and res.iterations < 50, (res.reason,
+                                                                        res.iterations)
+    assert res.arm_status[-1] == 'singularity'
+    row = study.run_cell(_task('arm', 'ibvs', 19, poses))
+    assert row['reason'] == paper.SINGULAR_STOP and not row['success']

@@ -62,6 +62,9 @@ JL_START = camera_at([0.34, -0.1, -0.178], roll_deg=74.0)
 JL_CELL_LIMITS = {2: (None, 2.04)}     # elbow_joint ≤ 2.04 rad
 JL_TURNS = (0, 0, 0, 0, 0, 0)
 
+#: why an arm run ends when a singular configuration stops the arm (see :func:`run_arm`)
+SINGULAR_STOP = 'singularity: the arm stopped near a singular configuration'
+
 #: arm placement of config/arm_sim.yaml: target in the world, hand-eye, IK seed, speed
 ARM_KW = dict(wMo=([0.5, 0.1, 0.05], [np.pi, 0.0, -np.pi / 2]),
               tool0Mc=([0.0, -0.04, 0.02], [0.0, 0.0, 0.0]), velocity_scale=0.5)
@@ -155,8 +158,10 @@ def run_arm(target, cMo_start: pin.SE3, cMo_desired: pin.SE3, feature_set: str =
             cell_limits: dict | None = None) -> LoopResult:
     """The servo with the UR5 in the loop: twist → ``arm.command(v); arm.step(dt)``, ``cMo``
     from the arm. Stops at convergence, or (``stop_at_limit``) at the first step whose
-    status is ``joint_limit`` (``reason`` names the joints). The result also carries
-    ``joints`` (N+1, 6) and ``arm_status`` (list of step statuses)."""
+    status is ``joint_limit`` (``reason`` names the joints) or at which the arm is stopped
+    by a singularity (reason ``SINGULAR_STOP``: the arm does not move, so the image and the
+    twist stay as they are — the run would only wait for ``max_iter``). The result also
+    carries ``joints`` (N+1, 6) and ``arm_status`` (list of step statuses)."""
     from ..sim.arm import Status
     arm = arm or make_arm(cell_limits)
     qs, qd = arm_start(arm, cMo_start, cMo_desired, turns)
@@ -196,6 +201,9 @@ def run_arm(target, cMo_start: pin.SE3, cMo_desired: pin.SE3, feature_set: str =
         J.append(arm.q.copy())
         if info.status == Status.JOINT_LIMIT and stop_at_limit:
             reason = f'joint_limit: {info.message}'
+            break
+        if info.status == Status.SINGULARITY and info.scale == 0.0 and stop_at_limit:
+            reason = SINGULAR_STOP
             break
     n = len(E)
     res = LoopResult(feature_set=feature_set, converged=converged, reason=reason,

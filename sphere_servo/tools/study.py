@@ -377,8 +377,17 @@ def why_runs_fail(rows: list, s: dict) -> list[str]:
         'a start needs a roll near 180°, θu takes the short way round, which for a wrist that '
         'starts near −π winds it on to −2π — the same camera pose, one turn further. A '
         'controller on SO(3) cannot see joint windings; the arm node reports the limit and '
-        'stops. The few max_iter runs of the arm are still moving at half joint speed after '
-        f'{MAX_ITER} iterations.',
+        'stops.',
+        f"- **Singularity (arm)** (ibvs {_count(s, 'arm', 'ibvs', 'singularity')}, s_cc "
+        f"{_count(s, 'arm', 's_cc', 'singularity')}, s_n {_count(s, 'arm', 's_n', 'singularity')}"
+        f", s {_count(s, 'arm', 's', 'singularity')}): the camera's motion stretches the arm out "
+        '(the elbow straightens) or takes it to another singular configuration, where the arm '
+        'node stops it (its singularity threshold); the arm does not move, so neither do the '
+        'image nor the twist. '
+        "For ibvs this is its camera retreat, which the UR5's reach cannot follow."
+        + (f" {sum(_count(s, 'arm', fs, 'max_iter') for fs in SETS)} arm runs reached "
+           f'{MAX_ITER} iterations still moving at half joint speed.'
+           if any(_count(s, 'arm', fs, 'max_iter') for fs in SETS) else ''),
         f"- **Pixel noise** changes none of this (same causes, similar counts); s_n succeeds "
         f"in {s.get(('noise', 's_n'), {}).get('success', float('nan')):.1f} % of the noisy "
         'runs and settles within about a millimetre of the goal on average (table above).',
