@@ -300,7 +300,9 @@ class Supervisor:
         """(m, deg) between the taught pose and the ground truth of the image the servo
         first called converged (the newest pose if that one has not arrived, or the servo
         did not converge), or None when nothing was taught or no pose arrived."""
-        pose = self.pose_at(self.t_converged) or (self.last_pose and self.last_pose[1])
+        pose = self.pose_at(self.t_converged)
+        if pose is None and self.last_pose is not None:
+            pose = self.last_pose[1]
         if self.oMc_taught is None or pose is None:
             return None
         import pinocchio as pin

@@ -64,6 +64,8 @@ JL_TURNS = (0, 0, 0, 0, 0, 0)
 
 #: why an arm run ends when a singular configuration stops the arm (see :func:`run_arm`)
 SINGULAR_STOP = 'singularity: the arm stopped near a singular configuration'
+SINGULAR_STEPS = 10
+SINGULAR_CRAWL = 1e-4                  # rad per step (100× below a slowed-down arm's motion)
 
 #: arm placement of config/arm_sim.yaml: target in the world, hand-eye, IK seed, speed
 ARM_KW = dict(wMo=([0.5, 0.1, 0.05], [np.pi, 0.0, -np.pi / 2]),
@@ -158,10 +160,12 @@ def run_arm(target, cMo_start: pin.SE3, cMo_desired: pin.SE3, feature_set: str =
             cell_limits: dict | None = None) -> LoopResult:
     """The servo with the UR5 in the loop: twist → ``arm.command(v); arm.step(dt)``, ``cMo``
     from the arm. Stops at convergence, or (``stop_at_limit``) at the first step whose
-    status is ``joint_limit`` (``reason`` names the joints) or at which the arm is stopped
-    by a singularity (reason ``SINGULAR_STOP``: the arm does not move, so the image and the
-    twist stay as they are — the run would only wait for ``max_iter``). The result also
-    carries ``joints`` (N+1, 6) and ``arm_status`` (list of step statuses)."""
+    status is ``joint_limit`` (``reason`` names the joints) or once a singularity has held
+    the arm to a crawl (every joint < ``SINGULAR_CRAWL`` rad per step) for
+    ``SINGULAR_STEPS`` steps (reason ``SINGULAR_STOP``: the arm node slows it down to its
+    singularity threshold, which the twist keeps pushing it towards; the image and the twist
+    hardly change — the run would only wait for ``max_iter``). The result also carries
+    ``joints`` (N+1, 6) and ``arm_status`` (list of step statuses)."""
     from ..sim.arm import Status
     arm = arm or make_arm(cell_limits)
     qs, qd = arm_start(arm, cMo_start, cMo_desired, turns)
@@ -174,6 +178,7 @@ def run_arm(target, cMo_start: pin.SE3, cMo_desired: pin.SE3, feature_set: str =
     poses, S, E, V, B, T, Q, J, status, in_view = [arm.oMc().homogeneous.copy()], [], [], [], \
         [], [], {}, [arm.q.copy()], [], []
     converged, reason = False, 'max_iter'
+    held = 0  # consecutive steps a singularity held the arm to a crawl
     for k in range(max_iter):
         try:
             obs = observer(arm.cMo())
@@ -202,7 +207,9 @@ def run_arm(target, cMo_start: pin.SE3, cMo_desired: pin.SE3, feature_set: str =
         if info.status == Status.JOINT_LIMIT and stop_at_limit:
             reason = f'joint_limit: {info.message}'
             break
-        if info.status == Status.SINGULARITY and info.scale == 0.0 and stop_at_limit:
+        held = held + 1 if (info.status == Status.SINGULARITY
+                            and np.max(np.abs(J[-1] - J[-2])) < SINGULAR_CRAWL) else 0
+        if held >= SINGULAR_STEPS and stop_at_limit:
             reason = SINGULAR_STOP
             break
     n = len(E)
