@@ -382,8 +382,8 @@ def why_runs_fail(rows: list, s: dict) -> list[str]:
         f"{_count(s, 'arm', 's_cc', 'singularity')}, s_n {_count(s, 'arm', 's_n', 'singularity')}"
         f", s {_count(s, 'arm', 's', 'singularity')}): the camera's motion stretches the arm out "
         '(the elbow straightens) or takes it to another singular configuration, where the arm '
-        'node stops it (its singularity threshold); the arm does not move, so neither do the '
-        'image nor the twist. '
+        'node slows it to a standstill (its singularity threshold, which the twist keeps '
+        'pushing it towards); the image and the twist hardly change any more. '
         "For ibvs this is its camera retreat, which the UR5's reach cannot follow."
         + (f" {sum(_count(s, 'arm', fs, 'max_iter') for fs in SETS)} arm runs reached "
            f'{MAX_ITER} iterations still moving at half joint speed.'
