@@ -193,44 +193,52 @@ def test_servo_safety(launch, test_node):
     from sphere_servo.nodes.vectors import features_msg
     node, spin = test_node
     twists, stamped, states = [], [], []
-    node.create_subscription(Twist, 'camera/cmd_vel', twists.append, 50)
-    node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append, 50)
-    node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 100)
+    subs = [node.create_subscription(Twist, 'camera/cmd_vel', twists.append, 50),
+            node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append,
+                                     50),
+            node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 100)]
     pub = node.create_publisher(JointState, 'features/s_n', 10)
     proc = launch('servo', '--ros-args', '-p', 'timeout:=0.3', '-p', 'max_image_age:=0.5')
+    # every topic matched both ways before the first features (volatile: nothing is resent)
+    assert spin(20.0, until=lambda: pub.get_subscription_count() > 0 and all(
+        sub.get_publisher_count() > 0 for sub in subs)), proc.log()
     assert spin(20.0, until=lambda: len(twists) > 3), proc.log()  # waiting: zeros
     assert all(_norm(t) == 0 for t in twists)
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
-    # image stamps on the servo's (wall) clock, as a camera driver stamps them
-    now = node.get_clock().now().nanoseconds * 1e-9
-    t_ok = round(now, 3)
+    def now() -> float:  # image stamps on the servo's (wall) clock, as a camera stamps them
+        return round(node.get_clock().now().nanoseconds * 1e-9, 3)
+
+    def at(m, t) -> bool:  # stamps near 1.8e9 s do not round-trip through float exactly
+        return abs(stamp(m) - t) < 1e-6
+    t_ok = now()
     pub.publish(features_msg('s_n', header(t_ok, 'cam'), s, s_star))
-    assert spin(5.0, until=lambda: any(stamp(m) == t_ok for m in stamped)), proc.log()
-    moving = [m for m in stamped if stamp(m) == t_ok][0]
+    assert spin(5.0, until=lambda: any(at(m, t_ok) for m in stamped)), proc.log()
+    moving = [m for m in stamped if at(m, t_ok)][0]
     assert _norm(moving.twist) > 0
     assert spin(5.0, until=lambda: any(m.message == 'servoing' for m in states))
     state = [m for m in states if m.message == 'servoing'][-1]
     age = float({kv.key: kv.value for kv in state.values}['image_age'])
     assert 0.0 <= age < 0.5, age
-    cases = [features_msg('s_n', header(t_ok + 0.001, 'cam')),                   # lost
-             features_msg('s_n', header(t_ok + 0.002, 'cam'), s * np.nan, s_star),  # NaN
-             JointState(header=header(t_ok + 0.003, 'cam'), name=['x'], position=[1.0])]
-    for msg in cases:
-        pub.publish(msg)
-        t = stamp(msg)
-        assert spin(5.0, until=lambda: any(stamp(m) == t for m in stamped)), proc.log()
-        assert _norm([m for m in stamped if stamp(m) == t][0].twist) == 0
+    cases = [lambda t: features_msg('s_n', header(t, 'cam')),                   # lost
+             lambda t: features_msg('s_n', header(t, 'cam'), s * np.nan, s_star),  # NaN
+             lambda t: JointState(header=header(t, 'cam'), name=['x'], position=[1.0])]
+    for make in cases:
+        t = max(now(), max(stamp(m) for m in stamped) + 0.001)  # fresh and not a repeat
+        pub.publish(make(t))
+        assert spin(5.0, until=lambda: any(at(m, t) for m in stamped)), proc.log()
+        assert _norm([m for m in stamped if at(m, t)][0].twist) == 0
         assert spin(5.0, until=lambda: any(m.message == 'target lost' and {
             kv.key: kv.value for kv in m.values}.get('stamp', '').startswith(str(int(t)))
             for m in states))
     # late images (2 s old, max_image_age 0.5 s) are not answered; with nothing else for
     # longer than timeout the watchdog stops the arm
     twists.clear()
+    t_late = now()
     for k in range(8):
-        pub.publish(features_msg('s_n', header(t_ok - 2.0 + 0.01 * k, 'cam'), s, s_star))
+        pub.publish(features_msg('s_n', header(t_late - 2.0 + 0.01 * k, 'cam'), s, s_star))
         spin(0.1)
-    assert not [m for m in stamped if stamp(m) < t_ok], 'a late image was answered'
+    assert not [m for m in stamped if stamp(m) < t_late - 1.0], 'a late image was answered'
     assert 'skipping features of an image' in proc.log()
     assert any(m.message == 'stale' for m in states[-5:]), [m.message for m in states[-5:]]
     assert twists and all(_norm(t) == 0 for t in twists)

@@ -17,12 +17,12 @@ Services
                                 false`` the servo sends zero twists until enabled: the
                                 launcher teaches the desired image meanwhile)
 
-Each image is answered once, from the newest features: a subscription of depth 1 (a backlog
-is skipped), a repeat of the last image's features is ignored, and so are features whose
-image is older than ``max_image_age`` on the node's clock (sim time with ``use_sim_time``).
-In lockstep ``max_image_age: 0`` answers only the current frame: each command steps the
-simulator, so answering a superseded frame would leave several frames in flight and the
-servo acting on old images (and the run would depend on the machine's load).
+Each image is answered once: a repeat of the last image's features is ignored, and so are
+features whose image is older than ``max_image_age`` on the node's clock (sim time with
+``use_sim_time``). In lockstep ``max_image_age: 0`` answers only the current frame: each
+command steps the simulator, so answering a superseded frame (a backlog that Fast DDS
+delivers late, in a burst, under load) would leave several frames in flight and the servo
+acting on old images, and the run would depend on the machine's load.
 
 Safety: a zero twist is sent while disabled, when the target or a mark is lost (empty
 features), when no usable features have come for ``timeout`` wall seconds (a dead detector,
@@ -99,12 +99,10 @@ class ServoNode(Node):
         self.pub_twist = self.create_publisher(Twist, 'camera/cmd_vel', 100)
         self.pub_stamped = self.create_publisher(TwistStamped, 'camera/cmd_vel_stamped', 100)
         self.pub_state = self.create_publisher(DiagnosticStatus, 'servo/state', 100)
-        # latest wins: a twist is computed from the newest features only. A backlog (Fast
-        # DDS delivers small topics late, in bursts, under load) answered message by message
-        # would send a twist per stale frame: in lockstep each one steps the simulator, and
-        # the loop would go on with several frames in flight, acting on old images.
+        # every frame gets its answer (a 60 Hz camera loses none); which frames are usable
+        # is _on_features' decision: see max_image_age
         self.create_subscription(JointState, f'features/{self.feature_set}', self._on_features,
-                                 1)
+                                 10)
         self.last_stamp = None  # image stamp of the last features answered
         self.enabled = p['start_enabled']
         self.create_service(SetBool, '~/enable', self._srv_enable)
