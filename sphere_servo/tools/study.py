@@ -329,16 +329,16 @@ def cell_limit() -> tuple[str, str]:
     return names[j], cell_limits_text(JL_CELL_LIMITS, names)
 
 
-def why_runs_fail(rows: list, s: dict) -> list[str]:
+def why_runs_fail(rows: list, s: dict, cell: str) -> list[str]:
     """The failure mechanisms, each with its counts from this study (looked at run by run
-    while writing it: the image/joint trajectories of failing runs, see the module doc)."""
+    while writing it: the image/joint trajectories of failing runs, see the module doc);
+    ``cell``: the joint of the arm condition's cell safety limit."""
     ibvs_img = [r for r in rows if r['cond'] == 'images' and r['set'] == 'ibvs'
                 and not r['success'] and r['reason'].startswith('target lost')]
     far = [r['final_t_mm'] / 1e3 for r in ibvs_img if 'final_t_mm' in r]
     arm_hits = {fs: {why.split(': ')[1]: k for why, k in s.get(('arm', fs), {})
                      .get('reasons', {}).items() if why.startswith('joint_limit')}
                 for fs in SETS}
-    cell = cell_limit()[0]
     return [
         '## Why runs fail', '',
         f"- **s leaves the image** ({_pct(s, 'ideal', 's', 'left')} of ideal runs, "
@@ -453,7 +453,7 @@ def write_report(rows: list, out: Path, n: int, n_images: int, wall: float | Non
                          f"{v['iters']:.0f} | {v['ratio']:.3f} | {v['left']:.1f} % | "
                          + ('n/a |' if v['joint_limit'] is None else f"{v['joint_limit']:.1f} % |"))
     n_arm = len({r['idx'] for r in rows if r['cond'] == 'arm' and not r.get('excluded')})
-    cell_limit_text = cell_limit()[1]
+    cell, cell_limit_text = cell_limit()
     lines += ['', 'Joint-limit hits are counted in the `arm` condition only: the UR5 in the loop '
               '(config/arm_sim.yaml placement, half joint speed) with its own limits plus the '
               f'cell\'s safety limit {cell_limit_text} of the docs/paper joint-limit scenario; '
@@ -472,7 +472,7 @@ def write_report(rows: list, out: Path, n: int, n_images: int, wall: float | Non
         if 'jitter_mm' in v:
             lines.append(f"| {fs} | {v['bias_mm']:.2f} | {v['bias_deg']:.3f} | "
                          f"{v['jitter_mm']:.2f} | {v['jitter_deg']:.3f} |")
-    lines += ['', *why_runs_fail(rows, s), '', '## Failures by cause', '', '| condition | set | cause | runs |', '|---|---|---|---|']
+    lines += ['', *why_runs_fail(rows, s, cell), '', '## Failures by cause', '', '| condition | set | cause | runs |', '|---|---|---|---|']
     for (c, fs), v in sorted(s.items()):
         for why, k in sorted(v['reasons'].items(), key=lambda kv: -kv[1]):
             lines.append(f'| {c} | {fs} | {why} | {k} |')

@@ -40,6 +40,15 @@ _SUB_X = (np.arange(_N_SUB) + 0.5) / _N_SUB - 0.5
 _SUB_Y = ((np.arange(_N_SUB) * 5) % _N_SUB + 0.5) / _N_SUB - 0.5
 
 
+def ball_silhouette(c: np.ndarray, rad: float) -> np.ndarray:
+    """Conic (normalized image coordinates) of the silhouette of a ball of radius ``rad``
+    centred at ``c`` (camera frame, in front of the camera): ``b bᵀ − cos²θ I`` with
+    ``b = c/‖c‖``, ``sin θ = rad/‖c‖`` (DESIGN.md §2)."""
+    dist = float(np.linalg.norm(c))
+    b = np.asarray(c, float) / dist
+    return np.outer(b, b) - (1.0 - (rad / dist) ** 2) * np.eye(3)
+
+
 def conic_bbox(C: np.ndarray) -> tuple[float, float, float, float] | None:
     """Axis-aligned bounding box ``(x_min, x_max, y_min, y_max)`` of the ellipse
     ``x̄ᵀ C x̄ = 0`` (3×3, any coordinates), from its vertical and horizontal tangent lines
@@ -260,11 +269,9 @@ class Renderer:
         whole grid if a ball is not entirely in front of the camera."""
         boxes = []
         for c, rad in balls:
-            dist = float(np.linalg.norm(c))
             if c[2] <= rad * 1.0001:
                 return slice(None), slice(None)
-            b = c / dist
-            box = conic_bbox(np.outer(b, b) - (1.0 - (rad / dist) ** 2) * np.eye(3))
+            box = conic_bbox(ball_silhouette(c, rad))
             if box is None:
                 return slice(None), slice(None)
             boxes.append(box)
@@ -341,11 +348,8 @@ class Renderer:
                 if c[2] + rad <= 0:
                     continue          # entirely behind the camera
                 return full
-            bvec = c / dist
-            cos2 = 1.0 - (rad / dist) ** 2
-            Cn = np.outer(bvec, bvec) - cos2 * np.eye(3)
             Kinv = self.camera.K_inv
-            bb = conic_bbox(Kinv.T @ Cn @ Kinv)
+            bb = conic_bbox(Kinv.T @ ball_silhouette(c, rad) @ Kinv)
             if bb is None:
                 return full
             boxes.append(bb)
