@@ -68,9 +68,9 @@ def run_window(sup) -> dict:
     servo run from the first image the enabled servo answered at the start pose
     (``sup.t_enabled``, else the first image there, ``sup.t_start``) on. The teach sequence
     before it (the arm at the desired pose measured against an earlier teach, the jump to the
-    start, the frames until the servo is enabled) is not part of the run. Camera positions are in the taught camera frame (the ground
-    truth of the taught image; the last pose when nothing was taught), so the trajectory ends
-    where the servo really stopped.
+    start, the frames until the servo is enabled) is not part of the run. Camera positions
+    are in the taught camera frame (the ground truth of the taught image; the last pose when
+    nothing was taught), so the trajectory ends where the servo really stopped.
 
     Returns ``t`` (n,) s from the start, ``e`` (n, 6) s − s*, ``v`` (n, 6) the twist sent for
     each features message (zero if none), ``cd_p`` (m, 3) camera centres in the taught frame,
@@ -78,7 +78,7 @@ def run_window(sup) -> dict:
     marks (camera frame), and ``iterations``: the servo's count of its iterations up to the
     first it called converged (None if it did not; the run goes on after that while the
     launcher stops the nodes, so the histories' length depends on timing, not this count)."""
-    t_start = sup.t_enabled if getattr(sup, 't_enabled', None) is not None else sup.t_start
+    t_start = sup.t_enabled if sup.t_enabled is not None else sup.t_start
 
     def run(history):  # by stamp: under load some messages are delivered late
         return sorted((h for h in history if h[0] >= t_start), key=lambda h: h[0])
@@ -103,7 +103,7 @@ def run_window(sup) -> dict:
                              ).reshape(-1, 3),
             'b': np.array([[m['b_x'], m['b_y'], m['b_z']] for _, m in meas]).reshape(-1, 3),
             'marks': marks,
-            'iterations': getattr(sup, 'iterations_converged', None)}
+            'iterations': sup.iterations_converged}
 
 
 def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Path]:

@@ -524,7 +524,7 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
     """The key scenarios' configs through the ROS 2 loop (``launcher.run``); figures via the
     demo's ``ros_figures``. Returns report lines."""
     from . import launcher
-    from .demo import ros_figures, run_window
+    from .demo import ros_figures
     lines = ['## Through the ROS 2 loop', '',
              'The same scenarios as four rclpy processes over DDS (`launcher --config <name> '
              '--until-converged`, lockstep): teach at the desired pose, jump to the start, '
@@ -545,7 +545,7 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
         figs = [] if sup is None else [
             shrink_png(f) for f in ros_figures(sup, sub, f'{sc.ros} over ROS 2', fset)]
         err = None if sup is None else sup.final_pose_error()
-        iters = None if sup is None else run_window(sup)['iterations']
+        iters = None if sup is None else sup.iterations_converged
         et, er = ('—', '—') if err is None else (f'{1e3 * err[0]:.2f}', f'{err[1]:.3f}')
         lines.append(f'| {sc.ros} | {code} | {_fmt(code == 0)} | '
                      f'{"—" if iters is None else iters} | '

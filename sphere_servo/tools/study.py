@@ -339,6 +339,7 @@ def why_runs_fail(rows: list, s: dict, cell: str) -> list[str]:
     arm_hits = {fs: {why.split(': ')[1]: k for why, k in s.get(('arm', fs), {})
                      .get('reasons', {}).items() if why.startswith('joint_limit')}
                 for fs in SETS}
+    arm_max_iter = sum(_count(s, 'arm', fs, 'max_iter') for fs in SETS)
     return [
         '## Why runs fail', '',
         f"- **s leaves the image** ({_pct(s, 'ideal', 's', 'left')} of ideal runs, "
@@ -385,9 +386,8 @@ def why_runs_fail(rows: list, s: dict, cell: str) -> list[str]:
         'node slows it to a standstill (its singularity threshold, which the twist keeps '
         'pushing it towards); the image and the twist hardly change any more. '
         "For ibvs this is its camera retreat, which the UR5's reach cannot follow."
-        + (f" {sum(_count(s, 'arm', fs, 'max_iter') for fs in SETS)} arm runs reached "
-           f'{MAX_ITER} iterations still moving at half joint speed.'
-           if any(_count(s, 'arm', fs, 'max_iter') for fs in SETS) else ''),
+        + (f' {arm_max_iter} arm runs reached {MAX_ITER} iterations still moving at half '
+           'joint speed.' if arm_max_iter else ''),
         f"- **Pixel noise** changes none of this (same causes, similar counts); s_n succeeds "
         f"in {s.get(('noise', 's_n'), {}).get('success', float('nan')):.1f} % of the noisy "
         'runs and settles within about a millimetre of the goal on average (table above).',
