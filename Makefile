@@ -24,19 +24,19 @@ test: $(STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS) test
 
 demo: $(STAMP)
-	$(PY) -m sphere_servo.tools.demo
+	$(PY) -m sphere_servo.experiments.demo
 
 bench: $(STAMP)
-	$(PY) -m sphere_servo.tools.bench
+	$(PY) -m benchmarks.bench
 
 gallery: $(STAMP)
-	$(PY) -m sphere_servo.tools.gallery
+	$(PY) -m sphere_servo.experiments.gallery
 
 paper: $(STAMP)
-	nice $(PY) -m sphere_servo.tools.paper --out runs/paper --ros
+	nice $(PY) -m sphere_servo.experiments.paper --out runs/paper --ros
 
 study: $(STAMP)
-	nice $(PY) -m sphere_servo.tools.study --n 500 --out docs/study --resume
+	nice $(PY) -m sphere_servo.experiments.study --n 500 --out docs/study --resume
 
 clean:
 	rm -rf $(VENV) build install log

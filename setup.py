@@ -7,7 +7,7 @@ package_name = 'sphere_servo'
 setup(
     name=package_name,
     version='0.1.0',
-    packages=find_packages(exclude=['test']),
+    packages=find_packages(include=['sphere_servo', 'sphere_servo.*']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -22,14 +22,14 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            'arm_sim = sphere_servo.nodes.arm_sim:main',
-            'detector = sphere_servo.nodes.detector:main',
-            'features = sphere_servo.nodes.features:main',
-            'servo = sphere_servo.nodes.servo:main',
-            'launcher = sphere_servo.tools.launcher:main',
-            'record = sphere_servo.tools.record:main',
-            'replay = sphere_servo.tools.replay:main',
-            'refeatures = sphere_servo.tools.refeatures:main',
+            'arm_sim = sphere_servo.ros.arm_sim:main',
+            'detector = sphere_servo.ros.detector:main',
+            'features = sphere_servo.ros.features:main',
+            'servo = sphere_servo.ros.servo:main',
+            'launcher = sphere_servo.bringup.launcher:main',
+            'record = sphere_servo.bag.record:main',
+            'replay = sphere_servo.bag.replay:main',
+            'refeatures = sphere_servo.bag.refeatures:main',
         ],
     },
 )

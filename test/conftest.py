@@ -23,10 +23,21 @@ from pathlib import Path
 
 import pytest
 
-from sphere_servo.tools.launcher import interrupt
+from sphere_servo.bringup.launcher import interrupt
 
 REPO = Path(__file__).resolve().parents[1]
 _domain_counter = itertools.count()
+
+
+ROS_FIXTURES = {'install_space', 'ros_env', 'launch', 'test_node'}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark every test that needs the colcon install or DDS as ``ros``, so that
+    ``pytest -m "not ros"`` is a fast inner loop."""
+    for item in items:
+        if ROS_FIXTURES & set(getattr(item, 'fixturenames', ())):
+            item.add_marker(pytest.mark.ros)
 
 
 LOCK_DIR = Path(tempfile.gettempdir()) / 'sphere_servo_ros_domains'

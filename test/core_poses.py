@@ -8,7 +8,7 @@ from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import MeasurementError, observe
 from sphere_servo.core.targets import Target
 
-from sphere_servo.core.scenarios import CMO_DESIRED, CMO_FAR_START, camera_at  # noqa: F401
+from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START, camera_at  # noqa: F401
 
 
 def random_visible_poses(target: Target, n: int, seed: int = 0,

@@ -18,7 +18,7 @@ from geometry_msgs.msg import PoseStamped, Twist  # noqa: E402
 from sensor_msgs.msg import Image, JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from sphere_servo.nodes.conversions import se3_from_pose, twist_from_array  # noqa: E402
+from sphere_servo.ros.conversions import se3_from_pose, twist_from_array  # noqa: E402
 from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy  # noqa: E402
 
 CONFIG = str(REPO / 'config' / 'arm_sim.yaml')

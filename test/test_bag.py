@@ -24,7 +24,7 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from sphere_servo.tools import bagio  # noqa: E402
+from sphere_servo.bag import bagio  # noqa: E402
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 W, H = 640, 480
@@ -363,7 +363,7 @@ def test_older_bag_format_and_its_qos(tmp_path):
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability)
 
-    from sphere_servo.tools.replay import publisher_qos
+    from sphere_servo.bag.replay import publisher_qos
     inf = bagio.qos_time(bagio.INFINITE_NS)
     qos = Qos(QosHistory.KEEP_LAST, 1, QosReliability.BEST_EFFORT,
               QosDurability.TRANSIENT_LOCAL, inf, inf, QosLiveliness.AUTOMATIC, inf, False)

@@ -9,7 +9,7 @@ from core_poses import CMO_DESIRED, CMO_FAR_START
 from sphere_servo.core.control import AdaptiveGain, Controller, saturate
 from sphere_servo.core.features import check_radius, make_feature_set
 from sphere_servo.core.geometry import rotation_angle_deg
-from sphere_servo.core.loop import run_loop
+from sphere_servo.sim.loop import run_loop
 from sphere_servo.core.measurement import observe
 from sphere_servo.core.targets import cc_target, special_sphere
 

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.tools.demo import ros_figures, run_window
+from sphere_servo.experiments.demo import ros_figures, run_window
 
 
 def _histories():

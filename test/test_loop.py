@@ -15,12 +15,12 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from conftest import executable_path, wait_for
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.scenarios import CMO_DESIRED
+from sphere_servo.experiments.scenarios import CMO_DESIRED
 from sphere_servo.core.targets import special_sphere
-from sphere_servo.nodes.conversions import (camera_info_from_intrinsics, header,
+from sphere_servo.ros.conversions import (camera_info_from_intrinsics, header,
                                             image_from_array, se3_from_pose)
 from sphere_servo.sim.arm import pose_from_xyz_rpy
-from sphere_servo.tools import launcher
+from sphere_servo.bringup import launcher
 from sphere_servo.vision.renderer import Renderer
 
 EXECUTABLES = ('arm_sim', 'detector', 'features', 'servo', 'launcher', 'record', 'replay',
@@ -190,7 +190,7 @@ def test_servo_safety(launch, test_node):
     late image is not answered; a real twist carries the image stamp and its age in
     servo/state."""
     from diagnostic_msgs.msg import DiagnosticStatus
-    from sphere_servo.nodes.vectors import features_msg
+    from sphere_servo.ros.vectors import features_msg
     node, spin = test_node
     twists, stamped, states = [], [], []
     subs = [node.create_subscription(Twist, 'camera/cmd_vel', twists.append, 50),
@@ -254,8 +254,8 @@ def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
     simulator's clock are answered, those of an older frame are skipped (no twist: in
     lockstep a twist steps the simulator), and a repeat of the same frame is answered once."""
     from rosgraph_msgs.msg import Clock
-    from sphere_servo.nodes.conversions import stamp_from_seconds
-    from sphere_servo.nodes.vectors import features_msg
+    from sphere_servo.ros.conversions import stamp_from_seconds
+    from sphere_servo.ros.vectors import features_msg
     node, spin = test_node
     stamped = []
     node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append, 50)
@@ -352,7 +352,7 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
 def _exact_measurement(cMo, target, t: float):
     """``detector/measurement`` of the exact projection of ``target`` seen from ``cMo``."""
     from sphere_servo.core.measurement import observe
-    from sphere_servo.nodes.vectors import measurement_msg
+    from sphere_servo.ros.vectors import measurement_msg
     from sphere_servo.vision.detector import Detection, Mark
     obs = observe(cMo, target)
     det = Detection(True, '', None, obs.sphere, 0.0, 0.0, ((320.0, 240.0), (60.0, 60.0), 0.0),
@@ -366,7 +366,7 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
     then every measurement gives features stamped with its header, s − s* = 0 on the taught
     image; an empty measurement gives an empty (target lost) features message."""
     from std_srvs.srv import Trigger
-    from sphere_servo.nodes.vectors import measurement_msg
+    from sphere_servo.ros.vectors import measurement_msg
     node, spin = test_node
     feats = []
     node.create_subscription(JointState, 'features/s_n', feats.append, 100)
@@ -526,7 +526,7 @@ def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
     """desired_source: image — the desired image file is detected with the camera_info
     intrinsics; the same image's measurement then gives zero error."""
     import cv2
-    from sphere_servo.nodes.vectors import measurement_msg
+    from sphere_servo.ros.vectors import measurement_msg
     from sphere_servo.vision.detector import Detector
     node, spin = test_node
     cam = CameraIntrinsics()

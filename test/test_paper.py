@@ -7,13 +7,13 @@ import pinocchio as pin
 import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.ibvs import IbvsFeatures
-from sphere_servo.core.loop import run_loop
+from sphere_servo.experiments.ibvs import IbvsFeatures
+from sphere_servo.sim.loop import run_loop
 from sphere_servo.core.measurement import observe
-from sphere_servo.core.observers import exact_observer, image_observer
-from sphere_servo.core.scenarios import CMO_DESIRED, CMO_FAR_START, camera_at
+from sphere_servo.sim.observers import exact_observer, image_observer
+from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START, camera_at
 from sphere_servo.core.targets import balloon, cc_target, special_sphere
-from sphere_servo.tools import paper
+from sphere_servo.experiments import paper
 
 CAM = CameraIntrinsics()
 

@@ -21,7 +21,7 @@ pytest.importorskip('rclpy')
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 
-from sphere_servo.tools import bagio, refeatures as rf  # noqa: E402
+from sphere_servo.bag import bagio, refeatures as rf  # noqa: E402
 
 
 @pytest.fixture(scope='module')

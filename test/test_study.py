@@ -10,7 +10,7 @@ import pytest
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import observe
 from sphere_servo.core.targets import cc_target
-from sphere_servo.tools import study
+from sphere_servo.experiments import study
 
 
 def test_start_poses_are_seeded_and_in_view():
@@ -80,8 +80,8 @@ def test_arm_run_ends_where_a_singularity_stops_the_arm():
     """ibvs's camera retreat stretches the UR5 out until the arm node stops it at its
     singularity threshold: the run ends there with that reason (it used to wait, unmoving,
     for max_iter)."""
-    from sphere_servo.core.scenarios import CMO_DESIRED
-    from sphere_servo.tools import paper
+    from sphere_servo.experiments.scenarios import CMO_DESIRED
+    from sphere_servo.experiments import paper
     poses = study.start_poses(20, seed=0)
     res = paper.run_arm(cc_target(), poses[19], CMO_DESIRED, 'ibvs', gain=study.ADAPTIVE,
                         max_iter=study.MAX_ITER, arm=paper.make_arm(paper.JL_CELL_LIMITS),

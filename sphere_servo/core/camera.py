@@ -14,9 +14,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .geometry import GeometryError
+from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.types import Points2
 
-Points2 = np.ndarray  # shape (N, 2)
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import linalg
-from .features import FeatureSet, STFeatures, SnFeatures, check_radius
-from .geometry import GeometryError
-from .measurement import Observation
+from sphere_servo.core import linalg
+from sphere_servo.core.features import FeatureSet, STFeatures, SnFeatures, check_radius
+from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.measurement import Observation
 
 INTERACTION_CHOICES = ('current', 'desired', 'mean')
 #: L(s, r̂) of the sets whose interaction matrix depends on the feature vector only

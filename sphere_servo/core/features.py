@@ -22,9 +22,9 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from .geometry import L_omega, cross3, exp3, log3, skew
-from .measurement import (MeasurementError, Observation, P3_over_r, P_over_r, cRo_measured)
-from .targets import CC
+from sphere_servo.core.geometry import L_omega, cross3, exp3, log3, skew
+from sphere_servo.core.measurement import (MeasurementError, Observation, P3_over_r, P_over_r, cRo_measured)
+from sphere_servo.core.targets import CC
 
 FEATURE_SETS = ('s_n', 's', 's_cc')
 
@@ -50,7 +50,8 @@ class FeatureSet(ABC):
 
     name: str = ''
     size: int = 6
-    labels: tuple = ()
+    labels: tuple = ()   # for plots (Unicode)
+    names: tuple = ()    # for messages and files (ASCII: ros2 topic echo, CSV headers)
 
     def __init__(self, desired: Observation):
         self.desired_obs = desired
@@ -82,6 +83,7 @@ class SnFeatures(FeatureSet):
 
     name = 's_n'
     labels = ('s_nt,x', 's_nt,y', 's_nt,z', 'θu_x', 'θu_y', 'θu_z')
+    names = ('s_nt_x', 's_nt_y', 's_nt_z', 'thetau_x', 'thetau_y', 'thetau_z')
 
     def _setup(self, desired):
         self.cdRo = cRo_measured(desired)
@@ -117,6 +119,7 @@ class STFeatures(SnFeatures):
 
     name = 's'
     labels = ('s_t,x', 's_t,y', 's_t,z', 'θu_x', 'θu_y', 'θu_z')
+    names = ('s_t_x', 's_t_y', 's_t_z', 'thetau_x', 'thetau_y', 'thetau_z')
 
     def _setup(self, desired):
         super()._setup(desired)
@@ -164,6 +167,7 @@ class SccFeatures(FeatureSet):
     name = 's_cc'
     size = 7
     labels = ('r_δ', 'b_x', 'b_y', 'b_z', 'ζ_x', 'ζ_y', 'ζ_z')
+    names = ('r_delta', 'b_x', 'b_y', 'b_z', 'zeta_x', 'zeta_y', 'zeta_z')
 
     def _setup(self, desired):
         self.Vd, _ = self._frame(desired)
@@ -223,8 +227,13 @@ def register_feature_set(name: str, cls: type) -> None:
 
 
 def feature_labels(name: str) -> tuple:
-    """Labels of the features of set ``name``."""
+    """Plot labels of the features of set ``name``."""
     return _CLASSES[name].labels
+
+
+def feature_names(name: str) -> tuple:
+    """ASCII names of the features of set ``name`` (message fields, file columns)."""
+    return _CLASSES[name].names
 
 
 def make_feature_set(name: str, desired: Observation) -> FeatureSet:

@@ -12,9 +12,8 @@ import math
 import numpy as np
 import pinocchio as pin
 
-Vec3 = np.ndarray  # shape (3,)
-Mat3 = np.ndarray  # shape (3, 3)
-Twist = np.ndarray  # shape (6,): (v, ω) in the current camera frame
+from sphere_servo.core.types import Mat3, Twist, Vec3
+
 
 
 class GeometryError(ValueError):

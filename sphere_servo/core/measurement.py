@@ -18,12 +18,11 @@ from functools import cached_property
 import numpy as np
 import pinocchio as pin
 
-from . import linalg
-from .geometry import GeometryError, normalize, require_finite
-from .targets import CC, SPECIAL, Target
+from sphere_servo.core import linalg
+from sphere_servo.core.geometry import GeometryError, normalize, require_finite
+from sphere_servo.core.targets import CC, SPECIAL, Target, mark_names
+from sphere_servo.core.types import Mat3, Vec3
 
-Vec3 = np.ndarray
-Mat3 = np.ndarray
 
 
 class MeasurementError(GeometryError):
@@ -65,7 +64,8 @@ class Observation:
 
     @property
     def second(self) -> str:
-        return 'P2' if self.kind == SPECIAL else 'P3'
+        """Name of the second mark: 'P2' (special sphere) or 'P3' (CC tip)."""
+        return mark_names(self.kind)[1]
 
 
 # --- sphere ------------------------------------------------------------------------------

@@ -18,11 +18,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import normalize
+from sphere_servo.core.geometry import normalize
 
 SPECIAL = 'special'
 CC = 'cc'
 KINDS = (SPECIAL, CC)
+#: the two marks the features use, by target kind: the second is P2 on a special sphere,
+#: the tangent tip P3 on a CC target
+MARK_NAMES = {SPECIAL: ('P1', 'P2'), CC: ('P1', 'P3')}
+
+
+def mark_names(kind: str) -> tuple[str, str]:
+    """('P1', 'P2') for a special sphere, ('P1', 'P3') for a CC target."""
+    try:
+        return MARK_NAMES[kind]
+    except KeyError:
+        raise ValueError(f'target kind must be one of {KINDS}, got {kind!r}') from None
 
 
 @dataclass(frozen=True)
@@ -64,7 +75,7 @@ class Target:
     @property
     def mark_names(self) -> tuple[str, str]:
         """('P1', 'P2') for a special sphere, ('P1', 'P3') for a CC target."""
-        return ('P1', 'P2') if self.kind == SPECIAL else ('P1', 'P3')
+        return mark_names(self.kind)
 
     @property
     def is_sphere(self) -> bool:

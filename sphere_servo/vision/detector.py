@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..core.measurement import (MeasurementError, Observation, SphereMeasurement,
+from sphere_servo.core.measurement import (MeasurementError, Observation, SphereMeasurement,
                                 conic_from_moments, sphere_from_conic, unit_ray)
-from ..core.targets import CC, SPECIAL, Target
+from sphere_servo.core.targets import SPECIAL, Target, mark_names
 
 ENCODINGS = ('rgb8', 'bgr8', 'mono8')
 _CHANNELS = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}
@@ -122,11 +122,9 @@ class Detection:
         """:class:`Observation` for the features: the sphere and the marks P1 and P2 ('special')
         or P1 and P3 ('cc'). Raises :class:`MeasurementError` when the sphere or one of those
         marks is missing."""
-        if kind not in (SPECIAL, CC):
-            raise ValueError(f"kind must be 'special' or 'cc', got {kind!r}")
+        names = mark_names(kind)
         if not self.found or self.sphere is None:
             raise MeasurementError(f'sphere not detected: {self.reason}')
-        names = ('P1', 'P2') if kind == SPECIAL else ('P1', 'P3')
         q = {}
         for name in names:
             m = self.marks.get(name)

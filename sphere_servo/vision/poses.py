@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from ..core.camera import CameraIntrinsics
-from ..core.measurement import mark_visible
-from ..core.targets import Target
-from .renderer import conic_bbox
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.measurement import mark_visible
+from sphere_servo.core.targets import Target
+from sphere_servo.vision.renderer import conic_bbox
 
 
 def silhouette_px_conic(cMo: pin.SE3, target: Target, cam: CameraIntrinsics) -> np.ndarray:

@@ -26,8 +26,8 @@ import pinocchio as pin
 
 import cv2
 
-from ..core.camera import CameraIntrinsics
-from ..core.targets import CC, Target
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.targets import CC, Target
 
 BACKGROUNDS = ('gradient', 'clutter', 'flat')
 

@@ -1,0 +1,111 @@
+"""Vision benchmark: detector and renderer speed at 640×480 (prints; never asserted by tests).
+
+- detector median ms/frame on ray-cast frames of the special sphere at 0.25–1.0 m, beside a
+  bare ``cvtColor + threshold(Otsu) + findContours + fitEllipse`` on the same frames
+  (target: ratio ≤ 3, median < 3 ms);
+- renderer frames/s for a target filling a quarter of the image (target ≥ 150).
+
+``python -m benchmarks.bench_vision [--quick]`` prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import cv2
+import numpy as np
+import pinocchio as pin
+
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.targets import cc_target, special_sphere
+from sphere_servo.vision.detector import Detector
+from sphere_servo.vision.poses import random_poses
+from sphere_servo.vision.renderer import Renderer
+
+
+def _frames(n: int, seed: int = 0):
+    """Ray-cast frames of the special sphere at the detector tests' random poses (0.25–1.0 m,
+    sphere fully in view, any orientation)."""
+    cam = CameraIntrinsics()
+    target = special_sphere()
+    ren = Renderer(cam, target)
+    return cam, target, [ren.render(M) for M in random_poses(target, cam, n, seed,
+                                                              max_incidence=None)]
+
+
+def baseline_ellipse(img: np.ndarray):
+    """The bare OpenCV pipeline the detector is compared with."""
+    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    _, mask = cv2.threshold(grey, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return None
+    c = max(contours, key=len)
+    return cv2.fitEllipse(c) if len(c) >= 5 else None
+
+
+def _median_ms(fn, frames, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        for f in frames:
+            t0 = time.perf_counter()
+            fn(f)
+            times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def _row(name, value, unit, target, baseline=None, baseline_name=None):
+    ratio = None if baseline in (None, 0) else value / baseline
+    return {'name': name, 'value': float(value), 'unit': unit,
+            'baseline': None if baseline is None else float(baseline),
+            'baseline_name': baseline_name, 'ratio': ratio, 'target': target}
+
+
+def run(quick: bool = False) -> list[dict]:
+    """Measure; returns rows ``{name, value, unit, baseline, baseline_name, ratio, target}``."""
+    n, repeat = (15, 2) if quick else (60, 3)
+    cam, target, frames = _frames(n)
+    det = Detector.for_target(target)
+    for f in frames[:3]:                      # warm-up
+        det.detect(f, 'rgb8', cam)
+        baseline_ellipse(f)
+    base = _median_ms(baseline_ellipse, frames, repeat)
+    mine = _median_ms(lambda f: det.detect(f, 'rgb8', cam), frames, repeat)
+    rows = [_row('detector median per 640x480 frame', mine, 'ms',
+                 'median < 3 ms and ratio <= 3', base,
+                 'cv2 threshold+findContours+fitEllipse')]
+    # a target filling a quarter of the image: disc area W·H/4
+    R_px = np.sqrt(cam.width * cam.height / (4 * np.pi))
+    for name, tgt in (('special', special_sphere()), ('cc', cc_target())):
+        d = cam.px * tgt.radius / R_px
+        ren = Renderer(cam, tgt)
+        rng = np.random.default_rng(1)
+        poses = [pin.SE3(pin.exp3(rng.normal(size=3) * 0.5), np.array([0.0, 0.0, d]))
+                 for _ in range(10)]
+        ren.render(poses[0])
+        k = 3 if quick else 10
+        t0 = time.perf_counter()
+        for _ in range(k):
+            for M in poses:
+                ren.render(M)
+        fps = k * len(poses) / (time.perf_counter() - t0)
+        rows.append(_row(f'renderer {name}, quarter-image target', fps, 'frames/s',
+                         '>= 150 frames/s'))
+    return rows
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--quick', action='store_true')
+    args = ap.parse_args(argv)
+    rows = run(args.quick)
+    print(f'{"benchmark":45s} {"value":>10s} {"unit":9s} {"baseline":>9s} {"ratio":>6s}  target')
+    for r in rows:
+        b = '' if r['baseline'] is None else f'{r["baseline"]:.3f}'
+        q = '' if r['ratio'] is None else f'{r["ratio"]:.2f}'
+        print(f'{r["name"]:45s} {r["value"]:10.3f} {r["unit"]:9s} {b:>9s} {q:>6s}  '
+              f'{r["target"]}')
+
+
+if __name__ == '__main__':
+    main()
