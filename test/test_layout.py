@@ -31,7 +31,7 @@ MAX_LINES = 500
 KNOWN_OVERSIZE = {'sphere_servo/bag/refeatures.py', 'sphere_servo/bringup/launcher.py',
                   'sphere_servo/experiments/paper.py', 'sphere_servo/experiments/study.py',
                   'sphere_servo/vision/detector.py'}
-KNOWN_UPWARD = {'sphere_servo.bag.refeatures'}
+KNOWN_UPWARD: set = set()
 
 
 def _modules() -> dict[str, Path]:

@@ -75,7 +75,7 @@ class Settings:
         """The nodes' defaults, overridden by a merged launcher config's sections."""
         from sphere_servo.ros import detector, features, servo
         from sphere_servo.ros.params import check
-        from sphere_servo.bringup.launcher import node_params
+        from sphere_servo.pipeline.config import node_params
         out = {}
         for name, table in (('detector', detector.PARAMS), ('features', features.PARAMS),
                             ('servo', servo.PARAMS)):
@@ -87,7 +87,7 @@ class Settings:
 def load_settings(config: str | None) -> Settings:
     if not config:
         return Settings.from_config(None)
-    from sphere_servo.bringup.launcher import find_config, load_config
+    from sphere_servo.pipeline.config import find_config, load_config
     return Settings.from_config(load_config(find_config(config)))
 
 
@@ -787,14 +787,14 @@ def main(argv=None) -> int:
 
 
 def _main(opts) -> int:
-    from sphere_servo.bringup.launcher import LaunchError
+    from sphere_servo.pipeline.config import ConfigError
     out = check_new_output(opts.output) if opts.output else None
     for f in (opts.plot, opts.export_desired, opts.json):
         if f and not Path(f).parent.is_dir():
             raise BagError(f'directory of {f!r} does not exist')
     try:
         settings = load_settings(opts.config)
-    except LaunchError as err:
+    except ConfigError as err:
         raise BagError(str(err)) from None
     res = regenerate(opts.bag, settings, opts.sets, opts.desired, opts.servo,
                      opts.image_topic, opts.info_topic)

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import copy
 import os
 import signal
 import subprocess
@@ -43,7 +42,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-SOURCE_CONFIG = Path(__file__).resolve().parents[2] / 'config'
+from sphere_servo.pipeline.config import (ConfigError, find_config, load_config,  # noqa: F401
+                                          merge, node_params, package_prefix)
+
 MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
            'record': 'sphere_servo.bag.record'}
@@ -52,69 +53,11 @@ RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match ev
 HISTORY_DEPTH = 1000  # the supervisor's subscriptions to the per-frame topics
 
 
-class LaunchError(RuntimeError):
-    """The config or an executable cannot be used."""
-
-
-# --- config --------------------------------------------------------------------------------
-def merge(base: dict, over: dict) -> dict:
-    """Deep merge: dicts merge recursively, anything else in ``over`` replaces."""
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
-            else copy.deepcopy(v)
-    return out
-
-
-def find_config(name: str) -> Path:
-    """A config path from a path or a name (``special_sphere`` or ``special_sphere.yaml``)."""
-    p = Path(name)
-    if p.is_file():
-        return p
-    fname = name if name.endswith('.yaml') else f'{name}.yaml'
-    prefix = package_prefix()
-    dirs = ([prefix / 'share' / 'sphere_servo' / 'config'] if prefix else []) + [SOURCE_CONFIG]
-    for d in dirs:
-        if (d / fname).is_file():
-            return d / fname
-    raise LaunchError(f'config {name!r} not found (looked in {", ".join(map(str, dirs))})')
-
-
-def load_config(path: Path, _seen=()) -> dict:
-    """The merged config of ``path`` and its ``launch.include`` files."""
-    path = Path(path).resolve()
-    if path in _seen:
-        raise LaunchError(f'config include cycle at {path}')
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise LaunchError(f'cannot read config {path}: {exc}') from None
-    if not isinstance(data, dict):
-        raise LaunchError(f'config {path} is not a mapping')
-    merged: dict = {}
-    for inc in (data.get('launch') or {}).get('include', []):
-        merged = merge(merged, load_config(path.parent / inc, (*_seen, path)))
-    merged = merge(merged, data)
-    merged.setdefault('launch', {}).pop('include', None)
-    return merged
-
-
-def node_params(config: dict, node: str) -> dict:
-    """The ``ros__parameters`` of ``node`` in a merged config ({} if none)."""
-    return ((config.get(node) or {}).get('ros__parameters') or {})
+class LaunchError(ConfigError):
+    """The config, an executable or the run cannot be used."""
 
 
 # --- processes -----------------------------------------------------------------------------
-def package_prefix() -> Path | None:
-    """The install prefix of sphere_servo in the ament index (as ``ros2 run`` finds it), or
-    None when the package is not installed (no ament index, or not in it)."""
-    try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-        return Path(get_package_prefix('sphere_servo'))
-    except (ImportError, PackageNotFoundError, OSError):  # OSError: no AMENT_PREFIX_PATH
-        return None
-
-
 def node_command(name: str) -> list[str]:
     """How ``ros2 run sphere_servo <name>`` would start it, or ``python -m`` from source."""
     prefix = package_prefix()
