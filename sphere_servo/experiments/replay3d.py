@@ -1,0 +1,334 @@
+"""
+``replay3d``: a 3-D replay page of a run, made from its recorded rosbag2.
+
+    python -m sphere_servo.experiments.replay3d BAG [-o OUT.html] [--config NAME]
+                                                [--every-image]
+
+Writes one self-contained HTML file (default ``replay.html`` beside the bag directory, i.e.
+``runs/<ts>/replay.html``) that opens offline in a WebGL browser: the meshcat viewer
+(three.js, from the ``meshcat`` package) and every mesh are inlined, nothing is fetched.
+It shows the UR5 (its example-robot-data meshes) moving through the run's recorded
+``joint_states``, the target and its marks, the camera's frustum and its path so far, and
+the desired camera (green frustum). The meshcat panel (top right, open) has play, pause,
+reset and the time slider under *Animations*; drag to orbit, scroll to zoom.
+
+The geometry is :class:`sphere_servo.sim.scene.Scene`'s, for the arm of the launcher config
+the run used (``--config``, default ``special_sphere``: hand-eye transform, target pose and
+target); the page is refused when the bag's ground truth ``ground_truth/camera_pose`` and
+the config's arm disagree (another config recorded it). The desired camera is the taught
+image's ground-truth pose (``runbag``), else the config's ``desired_cMo``.
+
+The page's address may carry options after ``#``: ``hide=robot,target,camera,path,desired``
+hides those groups, ``t=SECONDS`` pauses the animation at that time (the tests take
+screenshots with them; e.g. ``replay.html#t=0&hide=robot``).
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+from pathlib import Path
+import sys
+import time
+import warnings
+
+import numpy as np
+import pinocchio as pin
+
+from sphere_servo.bag import refeatures as rf
+from sphere_servo.bag.bagio import BagError
+from sphere_servo.experiments.runbag import cli_error, output_path, read_run, Run
+from sphere_servo.sim.scene import FRUSTUM_EDGES, Scene, SceneError
+
+GROUPS = ('robot', 'target', 'camera', 'path', 'desired')
+#: where the page's viewer camera starts, world frame (m), looking at the world origin
+VIEW_FROM = (1.0, 0.8, 0.6)
+POSE_TOL = 1e-6   # m / rad: the bag's ground truth against the config's arm
+MAX_PATH_SEGMENTS = 120
+
+
+def _flat(d: dict, prefix: str = '') -> dict:
+    """Nested YAML parameters as ROS names them: ``{'camera': {'px': 1}}`` → ``camera.px``."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f'{prefix}{k}.'))
+        else:
+            out[f'{prefix}{k}'] = v
+    return out
+
+
+def arm_params(config: dict | None) -> dict:
+    """Read the ``arm_sim`` parameters of a merged launcher config, validated as the node does."""
+    from sphere_servo.pipeline.config import node_params
+    from sphere_servo.ros.arm_sim import PARAMS
+    from sphere_servo.ros.params import check
+    given = _flat(node_params(config or {}, 'arm_sim'))
+    return {k: check(k, p, given.get(k, p.default)) for k, p in PARAMS.items()}
+
+
+def scene_for_run(run: Run, config: dict | None) -> Scene:
+    """
+    Build the :class:`Scene` of a run from the config it was recorded with.
+
+    Raises :class:`BagError` when the bag's ground truth disagrees with the config's arm
+    by more than :data:`POSE_TOL`, or the bag has no joint states.
+    """
+    from sphere_servo.core.camera import CameraIntrinsics
+    from sphere_servo.core.targets import make_target
+    from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy
+    p = arm_params(config)
+    kind = p['target.kind']
+    target = (make_target('balloon', axes=tuple(p['target.axes'])) if kind == 'balloon'
+              else make_target(kind, p['target.radius']))
+    arm = ArmModel(urdf_path=p['urdf_path'] or None,
+                   tool0Mc=pose_from_xyz_rpy(p['hand_eye'][:3], p['hand_eye'][3:]),
+                   wMo=pose_from_xyz_rpy(p['target_pose'][:3], p['target_pose'][3:]))
+    camera = run.camera or CameraIntrinsics(p['camera.px'], p['camera.py'], p['camera.u0'],
+                                            p['camera.v0'], p['camera.width'],
+                                            p['camera.height'])
+    if run.desired is not None and run.desired.stamp in run.oMc:
+        cdMo = run.oMc[run.desired.stamp].inverse()
+    else:
+        cdMo = pose_from_xyz_rpy(p['desired_cMo'][:3], p['desired_cMo'][3:])
+    scene = Scene(arm, target, camera, cdMo)
+    if not run.joints:
+        raise BagError(f'{run.path}: no joint_states in the bag: nothing to replay')
+    if run.joint_names and run.joint_names != arm.joint_names:
+        raise BagError(f'{run.path}: joint_states name {run.joint_names}, the UR5 model has '
+                       f'{arm.joint_names}')
+    worst = 0.0
+    for st, q in run.joints.items():
+        if st in run.oMc:
+            err = pin.log6((arm.wMo * run.oMc[st]).inverse() * scene.camera_pose(q)).vector
+            worst = max(worst, float(np.max(np.abs(err))))
+    if worst > POSE_TOL:
+        raise BagError(f'{run.path}: the recorded ground-truth camera poses and the arm of '
+                       f'this config disagree by up to {worst:.3g} (m, rad): give --config '
+                       'the run was recorded with')
+    return scene
+
+
+class Recorder:
+    """A meshcat "window" that keeps the commands instead of sending them to a server."""
+
+    def __init__(self):
+        self.commands: list[bytes] = []
+
+    def send(self, command) -> None:
+        import umsgpack
+        self.commands.append(umsgpack.packb(command.lower()))
+
+
+def _mesh(m):
+    """
+    Build the meshcat object of a :class:`LinkMesh`: its triangles, as assimp reads the file.
+
+    The file is loaded as Pinocchio loads its geometry (coal's mesh loader, the scale
+    applied), not handed to the browser: three.js's Collada loader in meshcat's viewer drops
+    parts of the UR5's visual DAE files (Pinocchio's own MeshcatVisualizer shows the same).
+    """
+    import coal
+    import meshcat.geometry as mg
+    from pinocchio.visualize.meshcat_visualizer import loadMesh
+    try:
+        bvh = coal.MeshLoader().load(str(m.path), np.asarray(m.scale, dtype=float))
+    except Exception as exc:  # noqa: BLE001 - coal raises RuntimeError or its own types
+        raise SceneError(f'cannot load mesh {m.path}: {exc}') from None
+    geom = loadMesh(bvh)
+    if not isinstance(geom, mg.TriangularMeshGeometry):
+        raise SceneError(f'mesh {m.path} has no triangles')
+    return mg.Mesh(geom, mg.MeshPhongMaterial(color=_hex(m.rgba[:3], 1.0), shininess=40))
+
+
+def _hex(rgb, scale: float = 255.0) -> int:
+    r, g, b = (int(round(float(c) * 255.0 / scale)) for c in rgb)
+    return (r << 16) + (g << 8) + b
+
+
+def _lines(points: np.ndarray, color: int, segments: bool = True, width: float = 2.0):
+    import meshcat.geometry as mg
+    geom = mg.PointsGeometry(np.asarray(points, dtype=np.float32).T)
+    mat = mg.LineBasicMaterial(color=color, linewidth=width)
+    return mg.LineSegments(geom, mat) if segments else mg.Line(geom, mat)
+
+
+def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], float]:
+    """
+    List the meshcat commands of the replay, in order, and the animation's duration (s).
+
+    The scene's objects, one animation frame per run frame: each mesh's pose, the camera,
+    and the path's pieces, each shown from the frame it reaches on.
+    """
+    with warnings.catch_warnings():  # meshcat imports its server, on a deprecated pyzmq API
+        warnings.simplefilter('ignore', DeprecationWarning)
+        import meshcat
+    import meshcat.geometry as mg
+    from meshcat.animation import Animation
+    rec = Recorder()
+    vis = meshcat.Visualizer(window=rec)
+    frames = [st for st in run.frames if st in run.joints]
+    if not frames:
+        raise BagError(f'{run.path}: no joint state for any frame of the run')
+    qs = [run.joints[st] for st in frames]
+    for m in scene.meshes:
+        vis[f'robot/{m.name}'].set_object(_mesh(m))
+    tg = scene.target
+    shape = mg.Sphere(tg.radius) if tg.axes is None else mg.Ellipsoid(tg.axes)
+    vis['target/body'].set_object(shape, mg.MeshPhongMaterial(color=_hex(tg.colors['body'])))
+    vis['target/body'].set_transform(tg.wMo.homogeneous)
+    for name, wP in tg.marks.items():
+        vis[f'target/{name}'].set_object(mg.Sphere(0.15 * tg.radius), mg.MeshPhongMaterial(
+            color=_hex(tg.colors[name])))
+        vis[f'target/{name}'].set_transform(pin.SE3(np.eye(3), wP).homogeneous)
+    edges = scene.cX_frustum[np.array(FRUSTUM_EDGES).ravel()]
+    vis['camera/frustum'].set_object(_lines(edges, 0xff8c00))
+    vis['camera/axes'].set_object(mg.triad(0.05))
+    if scene.wMc_desired is not None:
+        vis['desired/frustum'].set_object(_lines(edges, 0x00c000))
+        vis['desired'].set_transform(scene.wMc_desired.homogeneous)
+    wMc = [scene.camera_pose(q) for q in qs]
+    path = np.array([M.translation for M in wMc])
+    n = len(frames)
+    step = max(1, int(np.ceil((n - 1) / MAX_PATH_SEGMENTS)))
+    pieces = [(a, min(a + step, n - 1)) for a in range(0, n - 1, step)]
+    for j, (a, b) in enumerate(pieces):
+        vis[f'path/{j}'].set_object(_lines(path[a:b + 1], 0xffd700, segments=False))
+    anim = Animation(default_framerate=fps)
+    for k, q in enumerate(qs):
+        with anim.at_frame(vis, k) as fr:
+            for m, wMm in zip(scene.meshes, scene.link_poses(q)):
+                fr[f'robot/{m.name}'].set_transform(wMm.homogeneous)
+            fr['camera'].set_transform(wMc[k].homogeneous)
+    for j, (a, b) in enumerate(pieces):
+        # hidden until the camera gets there; a key at the last frame too, so every clip
+        # lasts the whole run
+        for k, shown in ((0, b == 0), (b, True), (n - 1, True)):
+            anim.at_frame(vis, k)[f'path/{j}'].set_property('visible', 'boolean', shown)
+    for m, wMm in zip(scene.meshes, scene.link_poses(qs[0])):
+        vis[f'robot/{m.name}'].set_transform(wMm.homogeneous)
+    vis['camera'].set_transform(wMc[0].homogeneous)
+    # the viewer camera: meshcat's camera sits in a frame rotated +90° about x (y up)
+    x, y, z = VIEW_FROM
+    vis['/Cameras/default/rotated/<object>'].set_property('position', [x, z, -y])
+    vis.set_animation(anim, play=True, repetitions=1)
+    return rec.commands, (n - 1) / fps
+
+
+PAGE = """<!DOCTYPE html>
+<html>
+<head><meta charset="utf-8"><title>{title}</title>
+<style>
+body {{ margin: 0; }}
+#meshcat-pane {{ width: 100vw; height: 100vh; overflow: hidden; }}
+#info {{ position: absolute; left: 8px; top: 8px; font: 13px sans-serif; color: #fff;
+         background: rgba(0, 0, 0, 0.45); padding: 6px 9px; border-radius: 4px;
+         max-width: calc(100% - 300px); }}
+</style></head>
+<body>
+<div id="meshcat-pane"></div>
+<div id="info">{info}</div>
+<script>
+{viewer_js}
+</script>
+<script>
+var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+function bytes(b64) {{
+  var s = atob(b64), a = new Uint8Array(s.length);
+  for (var i = 0; i < s.length; i++) a[i] = s.charCodeAt(i);
+  return a;
+}}
+var commands = [
+{commands}
+];
+commands.forEach(function (c) {{ viewer.handle_command_bytearray(bytes(c)); }});
+commands = null;
+var opts = new URLSearchParams(window.location.hash.slice(1));
+(opts.get("hide") || "").split(",").filter(Boolean).forEach(function (g) {{
+  viewer.handle_command({{type: "set_property", path: "/meshcat/" + g,
+                          property: "visible", value: false}});
+}});
+if (opts.has("t")) {{
+  var t = parseFloat(opts.get("t"));
+  viewer.animator.pause();
+  viewer.animator.seek(t);
+  viewer.animator.display_progress(t);
+}}
+viewer.gui.open();
+</script>
+</body>
+</html>
+"""
+
+
+def viewer_js() -> str:
+    """Read the meshcat viewer's bundled JavaScript (three.js and all) from the package."""
+    import meshcat
+    path = Path(meshcat.__file__).parent / 'viewer' / 'dist' / 'main.min.js'
+    if not path.is_file():
+        raise OSError(f'meshcat viewer script not found at {path}')
+    return path.read_text(encoding='utf-8')
+
+
+def write_page(commands: list[bytes], out: Path, title: str, info: str) -> Path:
+    """Write the self-contained page: the viewer script and the commands, inlined."""
+    import html
+    js = viewer_js()
+    if '</script' in js.lower():
+        raise OSError('the meshcat viewer script cannot be inlined (it holds </script>)')
+    body = ',\n'.join(f'"{base64.b64encode(c).decode("ascii")}"' for c in commands)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(PAGE.format(title=html.escape(title), info=info, viewer_js=js,
+                               commands=body), encoding='utf-8')
+    return out
+
+
+def make_replay(run: Run, config: dict | None, out: Path) -> tuple[Path, dict]:
+    """Write the replay page of ``run``; returns its path and a few figures about it."""
+    import html
+    t0 = time.monotonic()
+    scene = scene_for_run(run, config)
+    fps = 1.0 / (float(np.median(np.diff(run.frames))) * 1e-9) if len(run.frames) > 1 \
+        else 30.0
+    commands, duration = build_commands(scene, run, fps)
+    d = run.desired
+    info = (f'<b>{html.escape(run.path.parent.name or str(run.path))}</b>: '
+            f'{len(run.frames)} frames, {duration:.1f} s. Orange: camera and its frustum; '
+            f'yellow: its path; green: the desired camera'
+            + (f' ({html.escape(d.how)} image)' if d else ' (config)') +
+            '. Play / pause / time: <i>Animations</i>, top right.')
+    path = write_page(commands, out, f'replay: {run.path}', info)
+    return path, {'frames': len(run.frames), 'duration': duration, 'fps': fps,
+                  'seconds': time.monotonic() - t0, 'bytes': path.stat().st_size}
+
+
+def parse_args(argv):
+    ap = argparse.ArgumentParser(prog='replay3d', description=__doc__.strip().splitlines()[0])
+    ap.add_argument('bag', help='rosbag2 directory of the run (runs/<timestamp>/bag)')
+    ap.add_argument('-o', '--output', help='page (default: replay.html beside the bag)')
+    ap.add_argument('--config', default='special_sphere',
+                    help='launcher config the run used (arm, target, feature set)')
+    ap.add_argument('--every-image', action='store_true',
+                    help='every image of the bag, not only the servo iterations')
+    return ap.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    opts = parse_args(list(sys.argv[1:] if argv is None else argv))
+    from sphere_servo.pipeline.config import ConfigError, find_config, load_config
+    try:
+        config = load_config(find_config(opts.config))
+        run = read_run(opts.bag, rf.Settings.from_config(config),
+                       every_image=opts.every_image)
+        out = output_path(opts.bag, opts.output, 'replay.html')
+        path, figs = make_replay(run, config, out)
+    except (BagError, ConfigError, ValueError, OSError) as err:
+        return cli_error('replay3d', err)
+    print(f'replay3d: {figs["frames"]} frames ({figs["duration"]:.1f} s at {figs["fps"]:g} '
+          f'fps) in {figs["seconds"]:.1f} s')
+    print(f'  {path} ({figs["bytes"] / 1e6:.1f} MB)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""
+Test the 3-D replay page of a run (``experiments/replay3d.py``).
+
+The page is made from a recorded headless UR5 run (``run_bag``). It must not reference
+anything a browser would fetch (checked in its text, in its decoded scene commands, and in
+a real headless Chromium, whose DevTools protocol reports every request the page makes), and
+Chromium must render the arm: screenshots with and without the robot differ where the arm
+projects.
+"""
+from __future__ import annotations
+
+import base64
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import redirect_stderr, redirect_stdout
+import io
+from pathlib import Path
+import re
+
+from browser import load, screenshot
+import cv2
+import numpy as np
+import pinocchio as pin
+import pytest
+from run_bag import _arm_scene, run_bag
+from sphere_servo.experiments import replay3d
+from sphere_servo.experiments.runbag import read_run
+
+SIZE = (1000, 700)
+FOV_DEG = 75.0  # meshcat's default PerspectiveCamera (vertical field of view)
+# XML namespace names: identifiers inside the viewer's script, never fetched
+NAMESPACES = {'http://www.w3.org/1999/xhtml', 'http://www.w3.org/2000/svg'}
+
+
+@pytest.fixture(scope='module')
+def recorded(tmp_path_factory):
+    return run_bag(tmp_path_factory.getbasetemp())
+
+
+def _run(argv) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        try:
+            code = replay3d.main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope='module')
+def page(recorded, tmp_path_factory):
+    out = tmp_path_factory.mktemp('replay') / 'replay.html'
+    code, stdout, err = _run([recorded.bag, '-o', out])
+    assert code == 0, err
+    assert str(out) in stdout
+    return out
+
+
+def _commands(text: str) -> list[dict]:
+    import umsgpack
+    block = text[text.index('var commands = [') + 16:text.index('];', text.index(
+        'var commands = ['))]
+    return [umsgpack.unpackb(base64.b64decode(s)) for s in re.findall(r'"([^"]+)"', block)]
+
+
+def _strings(obj):
+    if isinstance(obj, str):
+        yield obj
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _strings(k)
+            yield from _strings(v)
+    elif isinstance(obj, (list, tuple)):
+        for v in obj:
+            yield from _strings(v)
+
+
+def test_page_is_self_contained(page, recorded):
+    text = page.read_text(encoding='utf-8')
+    urls = set(re.findall(r"""https?://[^\s"'`<>)\\]*""", text))
+    assert urls <= NAMESPACES, urls - NAMESPACES
+    for ns in urls:  # each one only as a namespace argument, e.g. createElementNS(ns, ...)
+        for m in re.finditer(re.escape(ns), text):
+            before = text[max(0, m.start() - 40):m.start()]
+            assert 'src' not in before and 'href' not in before and 'url(' not in before
+    assert not re.search(r'<(script|img|link|iframe)[^>]*\s(src|href)\s*=', text, re.I)
+    assert not re.search(r'@import|\burl\(\s*[\'"]?(https?:)?//', text, re.I)
+    cmds = _commands(text)
+    assert not [s for c in cmds for s in _strings(c) if re.search(r'https?:|//', s)]
+    # the animation: one key per frame of the run for the robot's links and the camera
+    anim = [c for c in cmds if c['type'] == 'set_animation']
+    assert len(anim) == 1
+    clips = {a['path']: a['clip'] for a in anim[0]['animations']}
+    robot = [p for p in clips if p.startswith('/meshcat/robot/')]
+    assert len(robot) == 7 and '/meshcat/camera' in clips
+    for p in robot + ['/meshcat/camera']:
+        keys = clips[p]['tracks'][0]['keys']
+        assert [k['time'] for k in keys] == list(range(recorded.iterations))
+    objects = {c['path'] for c in cmds if c['type'] == 'set_object'}
+    assert {'/meshcat/target/body', '/meshcat/camera/frustum', '/meshcat/desired/frustum'} \
+        <= objects
+    assert page.stat().st_size < 8e6
+
+
+def test_a_browser_fetches_nothing(page, tmp_path):
+    """
+    Open the page in Chromium under the DevTools protocol: it requests only itself.
+
+    A control page that references URLs is seen requesting them, so the check can fail.
+    The page also runs without an uncaught JavaScript exception.
+    """
+    control = tmp_path / 'control.html'
+    control.write_text('<html><body><img src="http://example.invalid/x.png">'
+                       '<script src="https://example.invalid/x.js"></script></body></html>')
+    seen = load(page.as_uri())
+    assert seen.loaded and seen.requests[0] == page.as_uri()
+    fetched = [u for u in seen.requests if not u.startswith(('data:', 'blob:', 'about:'))]
+    assert fetched == [page.as_uri()], fetched
+    assert seen.exceptions == [], seen.exceptions[:2]
+    ctrl = load(control.as_uri(), seconds=2.0)
+    assert {'http://example.invalid/x.png', 'https://example.invalid/x.js'} <= \
+        set(ctrl.requests), ctrl.requests
+
+
+def _project(points: np.ndarray) -> np.ndarray:
+    """
+    Project world points into the page's view.
+
+    Meshcat's perspective camera at :data:`replay3d.VIEW_FROM`, looking at the world
+    origin, world z up.
+    """
+    eye = np.array(replay3d.VIEW_FROM)
+    f = -eye / np.linalg.norm(eye)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    k = SIZE[1] / 2 / np.tan(np.radians(FOV_DEG) / 2)
+    d = np.asarray(points) - eye
+    x, y, z = d @ r, d @ u, d @ f
+    return np.column_stack([SIZE[0] / 2 + k * x / z, SIZE[1] / 2 - k * y / z])
+
+
+def _skeleton(q) -> np.ndarray:
+    """World points along the arm: the link frames' origins at ``q``, 20 between each."""
+    arm = _arm_scene()[0]
+    data = arm.model.createData()
+    pin.framesForwardKinematics(arm.model, data, q)
+    names = ['base_link', 'shoulder_link', 'upper_arm_link', 'forearm_link', 'wrist_1_link',
+             'wrist_2_link', 'wrist_3_link', 'tool0']
+    P = np.array([data.oMf[arm.model.getFrameId(n)].translation for n in names])
+    return np.vstack([a + (b - a) * s for a, b in zip(P[:-1], P[1:])
+                      for s in np.linspace(0, 1, 20)])
+
+
+@pytest.mark.slow
+def test_a_browser_renders_the_arm_where_it_is(page, recorded, tmp_path):
+    run = read_run(recorded.bag)
+    t_end = (len(run.frames) - 1) / 30.0
+    shots = {'arm': '#t=0', 'no_arm': '#t=0&hide=robot', 'arm_end': f'#t={t_end:.4f}'}
+    with ThreadPoolExecutor(2) as pool:
+        imgs = dict(zip(shots, pool.map(
+            lambda kv: screenshot(page.as_uri() + kv[1], tmp_path / f'{kv[0]}.png', SIZE),
+            shots.items())))
+    changed = np.max(np.abs(imgs['arm'].astype(int) - imgs['no_arm']), axis=2) > 40
+    total = int(changed.sum())
+    assert total > 5000, f'only {total} pixels change when the robot is hidden'
+    # where the arm is at the first frame: its skeleton projected into the view. The
+    # thresholds tell the start pose from the end pose (27 cm, 49° away, ~36 px in the
+    # view): measured here, start 0.97 and 0.99, end 0.76 and 0.76
+    inside, covered = _arm_match(changed, recorded.frames_q[0])
+    assert inside > 0.9, f'only {inside:.0%} of the changed pixels lie on the arm'
+    assert covered > 0.9, f'the arm covers only {covered:.0%} of its skeleton'
+    # the target is drawn with or without the robot, where it projects
+    tu, tv = np.round(_project([_arm_scene()[0].wMo.translation])[0]).astype(int)
+    for name in ('arm', 'no_arm'):
+        px = imgs[name][tv, tu].astype(int)
+        assert px.min() > 150, f'{name}: no white sphere at the target ({px})'
+    # at the end of the slider the arm is at the run's last joint state
+    changed = np.max(np.abs(imgs['arm_end'].astype(int) - imgs['no_arm']), axis=2) > 40
+    inside, covered = _arm_match(changed, recorded.frames_q[-1])
+    assert covered > 0.9, f'the last frame covers only {covered:.0%} of the final skeleton'
+
+
+def _arm_match(changed: np.ndarray, q) -> tuple[float, float]:
+    """
+    Compare the changed pixels of a screenshot with the arm's skeleton at ``q``.
+
+    Returns the fraction of the changed pixels within 30 px of the skeleton, and the
+    fraction of skeleton points with a changed pixel within 1 px.
+    """
+    sk = _project(_skeleton(q))
+    region = np.zeros(changed.shape, np.uint8)
+    cv2.polylines(region, [np.round(sk).astype(np.int32)], False, 1, 60)
+    inside = float((changed & (region > 0)).sum() / max(changed.sum(), 1))
+    near = cv2.dilate(changed.astype(np.uint8), np.ones((3, 3), np.uint8))
+    pts = [(int(v), int(u)) for u, v in sk if 0 <= u < SIZE[0] and 0 <= v < SIZE[1]]
+    return inside, float(np.mean([near[p] for p in pts]))
+
+
+def test_bad_inputs(recorded, tmp_path):
+    cfg = tmp_path / 'other_hand_eye.yaml'
+    special = Path(__file__).resolve().parents[1] / 'config' / 'special_sphere.yaml'
+    cfg.write_text(f'launch:\n  include: [{special}]\narm_sim:\n  ros__parameters:\n'
+                   '    hand_eye: [0.0, -0.05, 0.02, 0.0, 0.0, 0.0]\n')
+    cases = {'another arm': ([recorded.bag, '--config', cfg], 'disagree by up to'),
+             'no such bag': ([tmp_path / 'nope'], 'does not exist'),
+             'unknown config': ([recorded.bag, '--config', 'nope'], 'not found')}
+    for what, (argv, text) in cases.items():
+        code, stdout, err = _run(argv + ['-o', tmp_path / 'x.html'])
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert code == 1 and len(lines) == 1 and text in lines[0], f'{what}: {err!r}'
+        assert lines[0].startswith('replay3d: error:') and not (tmp_path / 'x.html').exists()
