@@ -91,13 +91,12 @@ def test_page_is_self_contained(page, recorded):
     assert len(anim) == 1
     clips = {a['path']: a['clip'] for a in anim[0]['animations']}
     robot = [p for p in clips if p.startswith('/meshcat/robot/')]
-    assert len(robot) == 7 and '/meshcat/camera' in clips
-    for p in robot + ['/meshcat/camera']:
+    assert len(robot) == 7 and '/meshcat/camera/0' in clips
+    for p in robot + ['/meshcat/camera/0']:
         keys = clips[p]['tracks'][0]['keys']
         assert [k['time'] for k in keys] == list(range(recorded.iterations))
     objects = {c['path'] for c in cmds if c['type'] == 'set_object'}
-    assert {'/meshcat/target/body', '/meshcat/camera/frustum', '/meshcat/desired/frustum'} \
-        <= objects
+    assert {'/meshcat/target/0', '/meshcat/camera/0', '/meshcat/desired_camera/0'} <= objects
     assert page.stat().st_size < 8e6
 
 

@@ -16,8 +16,8 @@ import pytest
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import cc_target, special_sphere
 from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy
-from sphere_servo.sim.scene import (CameraPath, FRUSTUM_EDGES, package_dirs, resolve_uri,
-                                    Scene, SceneError, urdf_meshes)
+from sphere_servo.sim.scene import (CameraPath, FRUSTUM_EDGES, MarkerKind, package_dirs,
+                                    resolve_uri, Scene, SceneError, urdf_meshes)
 
 HAND_EYE = pose_from_xyz_rpy([0.0, -0.04, 0.02], [0.0, 0.0, 0.0])
 WMO = pose_from_xyz_rpy([0.5, 0.1, 0.05], [np.pi, 0.0, -np.pi / 2])
@@ -269,3 +269,51 @@ def test_camera_path_spacing_and_bound():
             CameraPath(**kw)
     path.clear()
     assert path.points.shape == (0, 3)
+
+
+def test_markers_of_the_scene(scene, pin_geometry):
+    """The markers a ROS viewer draws: meshes at Pinocchio's placements, URIs that resolve."""
+    geom, gdata = pin_geometry
+    rng = np.random.default_rng(11)
+    path = CameraPath(min_step=0.0)
+    for _ in range(5):
+        q = _random_q(scene.model, rng)
+        path.add(scene.camera_pose(q).translation)
+    markers = scene.markers(q, path.points)
+    assert len({(m.ns, m.id) for m in markers}) == len(markers)
+    ns = {}
+    for m in markers:
+        ns.setdefault(m.ns, []).append(m)
+    assert set(ns) == {'robot', 'target', 'camera', 'camera_path', 'desired_camera'}
+    data = scene.model.createData()
+    pin.forwardKinematics(scene.model, data, q)
+    pin.updateGeometryPlacements(scene.model, data, geom, gdata)
+    dirs = package_dirs(scene.arm.urdf_path, 'example-robot-data')
+    assert len(ns['robot']) == 7
+    for m, g, oMg in zip(ns['robot'], geom.geometryObjects, gdata.oMg):
+        assert m.kind == MarkerKind.MESH_RESOURCE == 10
+        np.testing.assert_allclose(m.pose.homogeneous, oMg.homogeneous, atol=1e-9)
+        assert m.mesh_uri.startswith('package://example-robot-data/')
+        assert resolve_uri(m.mesh_uri, dirs).resolve() == Path(g.meshPath).resolve()
+    for m, g in zip(scene.markers(q, mesh_uris='file')[:7], geom.geometryObjects):
+        assert m.mesh_uri.startswith('file:///')
+        assert resolve_uri(m.mesh_uri).resolve() == Path(g.meshPath).resolve()
+    body, *marks = ns['target']
+    assert body.kind == MarkerKind.SPHERE and body.scale == (0.1, 0.1, 0.1)  # diameters
+    np.testing.assert_allclose(body.pose.translation, WMO.translation, atol=1e-12)
+    for m, oP in zip(marks, special_sphere().marks().values()):
+        np.testing.assert_allclose(m.pose.translation, WMO.act(oP), atol=1e-12)
+    cam, = ns['camera']
+    assert cam.kind == MarkerKind.LINE_LIST and cam.points.shape == (16, 3)
+    world = (cam.pose.rotation @ cam.points.T).T + cam.pose.translation
+    wMc = scene.camera_pose(q)
+    np.testing.assert_allclose(world, scene.frustum(wMc)[np.array(FRUSTUM_EDGES).ravel()],
+                               atol=1e-12)
+    np.testing.assert_allclose(cam.pose.homogeneous, wMc.homogeneous, atol=1e-12)
+    np.testing.assert_array_equal(ns['camera_path'][0].points, path.points)
+    np.testing.assert_allclose(ns['desired_camera'][0].pose.homogeneous,
+                               scene.wMc_desired.homogeneous, atol=1e-12)
+    assert all(0 <= c <= 1 for m in markers for c in m.rgba)
+    assert 'camera_path' not in {m.ns for m in scene.markers(q, path.points[:1])}
+    with pytest.raises(SceneError, match='mesh_uris'):
+        scene.markers(q, mesh_uris='http')

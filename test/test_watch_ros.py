@@ -56,5 +56,5 @@ def test_video_and_replay_of_a_ros_run(lockstep_run, tmp_path):  # noqa: F811
     cmds = _commands(page.read_text(encoding='utf-8'))
     anim = [c for c in cmds if c['type'] == 'set_animation'][0]
     keys = {a['path']: len(a['clip']['tracks'][0]['keys']) for a in anim['animations']}
-    assert keys['/meshcat/camera'] == len(run.frames) == len(frames)
+    assert keys['/meshcat/camera/0'] == len(run.frames) == len(frames)
     assert cv2.VideoCapture(str(out)).get(cv2.CAP_PROP_FPS) == pytest.approx(30.0, abs=0.1)

@@ -18,9 +18,11 @@ target); the page is refused when the bag's ground truth ``ground_truth/camera_p
 the config's arm disagree (another config recorded it). The desired camera is the taught
 image's ground-truth pose (``runbag``), else the config's ``desired_cMo``.
 
-The page's address may carry options after ``#``: ``hide=robot,target,camera,path,desired``
-hides those groups, ``t=SECONDS`` pauses the animation at that time (the tests take
-screenshots with them; e.g. ``replay.html#t=0&hide=robot``).
+What is drawn is the scene's markers (:meth:`Scene.markers`, what RViz or Foxglove will
+show of a live run), each at ``/meshcat/<namespace>/<id>``. The page's address may carry
+options after ``#``: ``hide=NS,...`` hides those namespaces (``robot``, ``camera``,
+``target``, ``camera_path``, ``desired_camera``), ``t=SECONDS`` pauses the animation at
+that time (the tests take screenshots with them; e.g. ``replay.html#t=0&hide=robot``).
 """
 from __future__ import annotations
 
@@ -37,9 +39,11 @@ import pinocchio as pin
 from sphere_servo.bag import refeatures as rf
 from sphere_servo.bag.bagio import BagError
 from sphere_servo.experiments.runbag import cli_error, output_path, read_run, Run
-from sphere_servo.sim.scene import FRUSTUM_EDGES, Scene, SceneError
+from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, resolve_uri, Scene,
+                                    SceneError)
 
-GROUPS = ('robot', 'target', 'camera', 'path', 'desired')
+#: the marker namespaces that move with the run (the others: target, desired_camera)
+MOVING = ('robot', 'camera')
 #: where the page's viewer camera starts, world frame (m), looking at the world origin
 VIEW_FROM = (1.0, 0.8, 0.6)
 POSE_TOL = 1e-6   # m / rad: the bag's ground truth against the config's arm
@@ -119,9 +123,9 @@ class Recorder:
         self.commands.append(umsgpack.packb(command.lower()))
 
 
-def _mesh(m):
+def _mesh(path: Path, scale, rgba):
     """
-    Build the meshcat object of a :class:`LinkMesh`: its triangles, as assimp reads the file.
+    Build the meshcat object of a mesh file: its triangles, as assimp reads the file.
 
     The file is loaded as Pinocchio loads its geometry (coal's mesh loader, the scale
     applied), not handed to the browser: three.js's Collada loader in meshcat's viewer drops
@@ -131,38 +135,47 @@ def _mesh(m):
     import meshcat.geometry as mg
     from pinocchio.visualize.meshcat_visualizer import loadMesh
     try:
-        bvh = coal.MeshLoader().load(str(m.path), np.asarray(m.scale, dtype=float))
+        bvh = coal.MeshLoader().load(str(path), np.asarray(scale, dtype=float))
     except Exception as exc:  # noqa: BLE001 - coal raises RuntimeError or its own types
-        raise SceneError(f'cannot load mesh {m.path}: {exc}') from None
+        raise SceneError(f'cannot load mesh {path}: {exc}') from None
     geom = loadMesh(bvh)
     if not isinstance(geom, mg.TriangularMeshGeometry):
-        raise SceneError(f'mesh {m.path} has no triangles')
-    return mg.Mesh(geom, mg.MeshPhongMaterial(color=_hex(m.rgba[:3], 1.0), shininess=40))
+        raise SceneError(f'mesh {path} has no triangles')
+    return mg.Mesh(geom, mg.MeshPhongMaterial(color=_hex(rgba), shininess=40))
 
 
-def _hex(rgb, scale: float = 255.0) -> int:
-    r, g, b = (int(round(float(c) * 255.0 / scale)) for c in rgb)
+def _hex(rgba) -> int:
+    r, g, b = (int(round(float(c) * 255.0)) for c in rgba[:3])
     return (r << 16) + (g << 8) + b
 
 
-def _lines(points: np.ndarray, color: int, segments: bool = True, width: float = 2.0):
+def _object(spec: MarkerSpec):
+    """Build the meshcat object drawing a :class:`MarkerSpec` (in its own frame)."""
     import meshcat.geometry as mg
-    geom = mg.PointsGeometry(np.asarray(points, dtype=np.float32).T)
-    mat = mg.LineBasicMaterial(color=color, linewidth=width)
-    return mg.LineSegments(geom, mat) if segments else mg.Line(geom, mat)
+    if spec.kind == MarkerKind.MESH_RESOURCE:
+        return _mesh(resolve_uri(spec.mesh_uri), spec.scale, spec.rgba)
+    if spec.kind == MarkerKind.SPHERE:
+        return mg.Mesh(mg.Ellipsoid(np.asarray(spec.scale) / 2),
+                       mg.MeshPhongMaterial(color=_hex(spec.rgba)))
+    if spec.kind in (MarkerKind.LINE_LIST, MarkerKind.LINE_STRIP):
+        geom = mg.PointsGeometry(np.asarray(spec.points, dtype=np.float32).T)
+        mat = mg.LineBasicMaterial(color=_hex(spec.rgba), linewidth=2.0)
+        return (mg.LineSegments if spec.kind == MarkerKind.LINE_LIST else mg.Line)(geom, mat)
+    raise SceneError(f'no drawing for marker kind {spec.kind!r}')
 
 
 def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], float]:
     """
     List the meshcat commands of the replay, in order, and the animation's duration (s).
 
-    The scene's objects, one animation frame per run frame: each mesh's pose, the camera,
-    and the path's pieces, each shown from the frame it reaches on.
+    What is drawn is the scene's markers (:meth:`Scene.markers`, what a ROS viewer shows),
+    each at ``/meshcat/<ns>/<id>``; one animation frame per run frame moves the robot's
+    meshes and the camera, and shows each piece of the camera's path from the frame the
+    camera reaches its end on.
     """
     with warnings.catch_warnings():  # meshcat imports its server, on a deprecated pyzmq API
         warnings.simplefilter('ignore', DeprecationWarning)
         import meshcat
-    import meshcat.geometry as mg
     from meshcat.animation import Animation
     rec = Recorder()
     vis = meshcat.Visualizer(window=rec)
@@ -170,43 +183,28 @@ def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], flo
     if not frames:
         raise BagError(f'{run.path}: no joint state for any frame of the run')
     qs = [run.joints[st] for st in frames]
-    for m in scene.meshes:
-        vis[f'robot/{m.name}'].set_object(_mesh(m))
-    tg = scene.target
-    shape = mg.Sphere(tg.radius) if tg.axes is None else mg.Ellipsoid(tg.axes)
-    vis['target/body'].set_object(shape, mg.MeshPhongMaterial(color=_hex(tg.colors['body'])))
-    vis['target/body'].set_transform(tg.wMo.homogeneous)
-    for name, wP in tg.marks.items():
-        vis[f'target/{name}'].set_object(mg.Sphere(0.15 * tg.radius), mg.MeshPhongMaterial(
-            color=_hex(tg.colors[name])))
-        vis[f'target/{name}'].set_transform(pin.SE3(np.eye(3), wP).homogeneous)
-    edges = scene.cX_frustum[np.array(FRUSTUM_EDGES).ravel()]
-    vis['camera/frustum'].set_object(_lines(edges, 0xff8c00))
-    vis['camera/axes'].set_object(mg.triad(0.05))
-    if scene.wMc_desired is not None:
-        vis['desired/frustum'].set_object(_lines(edges, 0x00c000))
-        vis['desired'].set_transform(scene.wMc_desired.homogeneous)
-    wMc = [scene.camera_pose(q) for q in qs]
-    path = np.array([M.translation for M in wMc])
+    path = np.array([scene.camera_pose(q).translation for q in qs])
     n = len(frames)
     step = max(1, int(np.ceil((n - 1) / MAX_PATH_SEGMENTS)))
     pieces = [(a, min(a + step, n - 1)) for a in range(0, n - 1, step)]
-    for j, (a, b) in enumerate(pieces):
-        vis[f'path/{j}'].set_object(_lines(path[a:b + 1], 0xffd700, segments=False))
+    for spec in scene.markers(qs[0], mesh_uris='file'):
+        vis[f'{spec.ns}/{spec.id}'].set_object(_object(spec))
+        vis[f'{spec.ns}/{spec.id}'].set_transform(spec.pose.homogeneous)
+    for j, (a, b) in enumerate(pieces):  # the camera_path marker, drawn as it grows
+        spec = next(m for m in scene.markers(qs[0], path[a:b + 1]) if m.ns == 'camera_path')
+        vis[f'{spec.ns}/{j}'].set_object(_object(spec))
     anim = Animation(default_framerate=fps)
     for k, q in enumerate(qs):
         with anim.at_frame(vis, k) as fr:
-            for m, wMm in zip(scene.meshes, scene.link_poses(q)):
-                fr[f'robot/{m.name}'].set_transform(wMm.homogeneous)
-            fr['camera'].set_transform(wMc[k].homogeneous)
+            for spec in scene.markers(q):
+                if spec.ns in MOVING:
+                    fr[f'{spec.ns}/{spec.id}'].set_transform(spec.pose.homogeneous)
     for j, (a, b) in enumerate(pieces):
         # hidden until the camera gets there; a key at the last frame too, so every clip
         # lasts the whole run
         for k, shown in ((0, b == 0), (b, True), (n - 1, True)):
-            anim.at_frame(vis, k)[f'path/{j}'].set_property('visible', 'boolean', shown)
-    for m, wMm in zip(scene.meshes, scene.link_poses(qs[0])):
-        vis[f'robot/{m.name}'].set_transform(wMm.homogeneous)
-    vis['camera'].set_transform(wMc[0].homogeneous)
+            fr = anim.at_frame(vis, k)
+            fr[f'camera_path/{j}'].set_property('visible', 'boolean', shown)
     # the viewer camera: meshcat's camera sits in a frame rotated +90° about x (y up)
     x, y, z = VIEW_FROM
     vis['/Cameras/default/rotated/<object>'].set_property('position', [x, z, -y])

@@ -12,13 +12,20 @@ The 3-D scene of a run as plain data (no ROS): what a 3-D viewer draws.
 - The camera's path so far (:class:`CameraPath`) and the desired camera pose
   ``wMc* = wMo · (c*Mo)⁻¹``.
 
-This is what both the ROS viewers' markers and the offline replay page draw. ``package://PKG/
-REL`` resolves to ``DIR/PKG/REL`` for the first directory ``DIR`` of the search list that has
-it (ROS's ``share`` directories; see :func:`package_dirs`).
+This is what both the ROS viewers' markers and the offline replay page draw.
+:meth:`Scene.markers` lists it as ``visualization_msgs/Marker``-shaped plain data
+(:class:`MarkerSpec`, frame ``world``): ``MESH_RESOURCE`` markers whose ``package://``
+URIs resolve wherever ``example-robot-data`` is installed as a ROS package
+(``ros-jazzy-example-robot-data``); the fallback for a viewer without it is
+``mesh_uris='file'``, ``file://`` URIs of this machine's files (RViz on the same machine).
+
+``package://PKG/REL`` resolves to ``DIR/PKG/REL`` for the first directory ``DIR`` of the
+search list that has it (ROS's ``share`` directories; see :func:`package_dirs`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 import os
 from pathlib import Path
 from urllib.parse import unquote, urlparse
@@ -36,6 +43,36 @@ PACKAGE_SCHEME = 'package://'
 #: image corners (0, 0), (W, 0), (W, H), (0, H))
 FRUSTUM_EDGES = ((0, 1), (0, 2), (0, 3), (0, 4), (1, 2), (2, 3), (3, 4), (4, 1))
 DEFAULT_RGBA = (0.7, 0.7, 0.7, 1.0)
+
+
+class MarkerKind(int, Enum):
+    """The ``visualization_msgs/Marker`` types the scene uses (the message's integers)."""
+
+    ARROW = 0
+    SPHERE = 2
+    LINE_STRIP = 4
+    LINE_LIST = 5
+    MESH_RESOURCE = 10
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """
+    One marker of the scene, as ``visualization_msgs/Marker`` has it, without ROS.
+
+    ``pose`` is the marker's frame in ``world``; ``points`` (n, 3) are in that frame (line
+    markers); ``scale`` is the message's (a sphere's diameters, a line's width in x, a
+    mesh's scale); ``rgba`` in [0, 1]; ``mesh_uri`` for ``MESH_RESOURCE``.
+    """
+
+    ns: str
+    id: int  # noqa: A003 - the message's field name
+    kind: MarkerKind
+    pose: pin.SE3
+    scale: tuple
+    rgba: tuple
+    points: np.ndarray | None = None
+    mesh_uri: str = ''
 
 
 class SceneError(ValueError):
@@ -295,3 +332,42 @@ class Scene:
         pixel edges) at depth :attr:`frustum_depth`; edges in :data:`FRUSTUM_EDGES`.
         """
         return (wMc.rotation @ self.cX_frustum.T).T + wMc.translation
+
+    def markers(self, q, path: np.ndarray | None = None, mesh_uris: str = 'package',
+                line_width: float = 0.004) -> list[MarkerSpec]:
+        """
+        List the scene at joint state ``q`` as viewer markers: :class:`MarkerSpec`.
+
+        Namespaces: ``robot`` (a mesh per link), ``target`` (the body, then the marks),
+        ``camera`` (the frustum at ``wMc(q)``), ``camera_path`` (``path``, world points,
+        when it has two or more) and ``desired_camera``. ``mesh_uris``: ``'package'`` (the
+        URDF's ``package://`` URIs) or ``'file'`` (the fallback, ``file://`` URIs).
+        """
+        if mesh_uris not in ('package', 'file'):
+            raise SceneError(f"mesh_uris must be 'package' or 'file', got {mesh_uris!r}")
+        out = [MarkerSpec('robot', i, MarkerKind.MESH_RESOURCE, wMm, tuple(m.scale), m.rgba,
+                          mesh_uri=m.uri if mesh_uris == 'package' else m.file_uri)
+               for i, (m, wMm) in enumerate(zip(self.meshes, self.link_poses(q)))]
+        tg = self.target
+        size = 2 * (np.full(3, tg.radius) if tg.axes is None else np.asarray(tg.axes))
+        out.append(MarkerSpec('target', 0, MarkerKind.SPHERE, tg.wMo, tuple(size),
+                              _rgba(tg.colors['body'])))
+        for i, (name, wP) in enumerate(tg.marks.items(), start=1):
+            out.append(MarkerSpec('target', i, MarkerKind.SPHERE, pin.SE3(np.eye(3), wP),
+                                  (0.3 * tg.radius,) * 3, _rgba(tg.colors[name])))
+        edges = self.cX_frustum[np.array(FRUSTUM_EDGES).ravel()]
+        width = (line_width, 0.0, 0.0)
+        out.append(MarkerSpec('camera', 0, MarkerKind.LINE_LIST, self.camera_pose(q), width,
+                              (1.0, 0.55, 0.0, 1.0), edges))
+        path = None if path is None else np.asarray(path, dtype=float).reshape(-1, 3)
+        if path is not None and len(path) >= 2:
+            out.append(MarkerSpec('camera_path', 0, MarkerKind.LINE_STRIP, pin.SE3.Identity(),
+                                  width, (1.0, 0.84, 0.0, 1.0), path))
+        if self.wMc_desired is not None:
+            out.append(MarkerSpec('desired_camera', 0, MarkerKind.LINE_LIST, self.wMc_desired,
+                                  width, (0.0, 0.75, 0.0, 1.0), edges))
+        return out
+
+
+def _rgba(rgb8) -> tuple:
+    return (*(float(c) / 255.0 for c in rgb8[:3]), 1.0)
