@@ -1,4 +1,5 @@
-"""Benchmark of rosbag2 recording and replay (issue 6).
+"""
+Benchmark of rosbag2 recording and replay (issue 6).
 
 Rows (``run()`` returns dicts with name, value, unit, baseline, baseline_name,
 ratio = value / baseline, target):
@@ -23,13 +24,13 @@ from __future__ import annotations
 import argparse
 import array
 import os
+from pathlib import Path
 import re
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 TOPIC = '/bench/image_raw'
@@ -43,7 +44,7 @@ def _row(name, value, unit, baseline, baseline_name, target) -> dict:
 
 
 def _cpu_seconds(pid: int) -> float:
-    """utime + stime of a process, from /proc/<pid>/stat (fields 14 and 15)."""
+    """Return utime + stime of a process, from /proc/<pid>/stat (fields 14 and 15)."""
     text = Path(f'/proc/{pid}/stat').read_text()
     fields = text[text.rindex(')') + 2:].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
@@ -149,7 +150,7 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--quick', action='store_true', help='short runs')
     for r in run(quick=ap.parse_args(argv).quick):
         print(f"{r['name']:<46} {r['value']:10.3f} {r['unit']:<6} (baseline "

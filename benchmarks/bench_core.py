@@ -1,7 +1,10 @@
-"""Benchmark of the pure core: one control step from a measurement (conic + two mark
-points in normalized coordinates) to the twist — ``s_n``, ``L_sn`` and ``v_c``.
-Target (issue 2): < 100 µs median per call. Baseline beside it: a bare 6×6 ``np.linalg.solve``
-(the floor of any law that inverts L)."""
+"""
+Benchmark of the pure core: one control step from a measurement to the twist.
+
+From the measurement (conic + two mark points in normalized coordinates) to ``s_n``,
+``L_sn`` and ``v_c``. Target (issue 2): < 100 µs median per call. Baseline beside it: a
+bare 6×6 ``np.linalg.solve`` (the floor of any law that inverts L).
+"""
 from __future__ import annotations
 
 import time

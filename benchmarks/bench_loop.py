@@ -1,5 +1,8 @@
-"""Benchmark of the ROS pipeline (issue 5): image → twist latency across processes, keeping up
-with a 60 Hz camera, and resident memory per node.
+"""
+Benchmark of the ROS pipeline (issue 5).
+
+Image → twist latency across processes, keeping up with a 60 Hz camera, and resident memory
+per node.
 
 A feeder *process* publishes rendered 640×480 rgb8 images (and camera_info) stamped with the
 wall clock at publish time, at a set rate; ``detector``, ``features`` and ``servo`` run as
@@ -18,15 +21,15 @@ separate processes (``python -m``), and this process listens. Figures:
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-FEEDER = r'''
+FEEDER = r"""
 import signal, sys, time, rclpy
 from rclpy.node import Node
 from std_msgs.msg import Header
@@ -58,7 +61,7 @@ while state['run']:
 print(f'published {n}', flush=True)
 node.destroy_node()
 rclpy.try_shutdown()
-'''
+"""
 
 
 def _rss_mb(pid: int) -> float:

@@ -1,12 +1,15 @@
-"""Pure tests of the UR5 + eye-in-hand camera model (no ROS): Jacobian against finite
-differences of Pinocchio's forward kinematics, DLS tracking, uniform velocity scaling,
-position limits, watchdog, IK."""
+"""
+Pure tests of the UR5 + eye-in-hand camera model (no ROS).
+
+Jacobian against finite differences of Pinocchio's forward kinematics, DLS tracking,
+uniform velocity scaling, position limits, watchdog, IK.
+"""
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from sphere_servo.core.geometry import integrate_camera
-from sphere_servo.sim.arm import ArmModel, Status, find_ur5_urdf, pose_from_xyz_rpy
+from sphere_servo.sim.arm import ArmModel, find_ur5_urdf, pose_from_xyz_rpy, Status
 
 Q_NOMINAL = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
 HAND_EYE = pose_from_xyz_rpy([0.02, -0.04, 0.03], [0.05, -0.03, 0.4])

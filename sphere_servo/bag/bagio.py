@@ -1,5 +1,8 @@
-"""rosbag2 files without ROS: open and validate a bag, list its topics, iterate raw
-messages, summarise its metadata, and decode its images for offline processing.
+"""
+rosbag2 files without ROS.
+
+Open and validate a bag, list its topics, iterate raw messages, summarise its metadata, and
+decode its images for offline processing.
 
 Pure module (no rclpy), built on the ``rosbags`` library; shared by the ``record`` and
 ``replay`` executables and by offline pipelines (``iter_images``). Every failure to read a
@@ -7,17 +10,16 @@ bag is raised as :class:`BagError` with a one-line message fit for a command lin
 """
 from __future__ import annotations
 
-import sqlite3
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+import sqlite3
 
 import numpy as np
-import yaml
-
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection, Qos, QosTime
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import get_typestore, Stores
+import yaml
 
 __all__ = [
     'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'select_connections',
@@ -35,7 +37,7 @@ class BagError(ValueError):
 
 
 def typestore():
-    """The Jazzy typestore (built once)."""
+    """Return the Jazzy typestore, built on the first call."""
     global _TYPESTORE
     if _TYPESTORE is None:
         _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -48,7 +50,7 @@ def _one_line(err: BaseException) -> str:
 
 
 def qos_time(ns: int) -> QosTime:
-    """A duration in ns as QoS metadata time (infinite → sec 9223372036, nsec 854775807)."""
+    """Convert a duration (ns) to QoS metadata time (infinite → sec 9223372036, nsec 854775807)."""
     ns = min(max(int(ns), 0), INFINITE_NS)
     return QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
 
@@ -60,7 +62,7 @@ def topic_name(name: str) -> str:
 
 
 def check_new_output(path: str | Path) -> Path:
-    """The output path for a new bag; it must not exist (rosbag2 never overwrites)."""
+    """Return the output path for a new bag; it must not exist (rosbag2 never overwrites)."""
     path = Path(path)
     if path.exists():
         raise BagError(f'output path {str(path)!r} exists already; choose a new one')
@@ -93,8 +95,11 @@ def _metadata(bag_dir: Path) -> dict:
 
 
 def _check_storage(bag_dir: Path) -> None:
-    """Integrity of sqlite3 files, which rosbags only notices midway through a bag (MCAP's
-    summary section, read at open, already catches a truncated MCAP)."""
+    """
+    Check the integrity of sqlite3 files, which rosbags only notices midway through a bag.
+
+    MCAP's summary section, read at open, already catches a truncated MCAP.
+    """
     info = _metadata(bag_dir)
     db3 = [bag_dir / Path(x).name for x in info.get('relative_file_paths') or []
            if str(x).endswith('.db3')]
@@ -120,9 +125,11 @@ def _check_storage(bag_dir: Path) -> None:
 
 
 def open_bag(path: str | Path) -> AnyReader:
-    """Open a rosbag2 directory (MCAP or sqlite3) for reading, or raise :class:`BagError`.
+    """
+    Open a rosbag2 directory (MCAP or sqlite3) for reading, or raise :class:`BagError`.
 
-    The caller closes the returned reader (or use :func:`bag`)."""
+    The caller closes the returned reader (or use :func:`bag`).
+    """
     bag_dir = _bag_dir(path)
     reader = AnyReader([bag_dir], default_typestore=typestore())
     try:
@@ -139,7 +146,11 @@ def open_bag(path: str | Path) -> AnyReader:
 
 @contextmanager
 def bag(path: str | Path) -> Iterator[AnyReader]:
-    """``with bag(path) as reader:`` — :func:`open_bag` as a context manager."""
+    """
+    Open a bag as a context manager (:func:`open_bag`, then close the reader).
+
+    ``with bag(path) as reader:``
+    """
     reader = open_bag(path)
     try:
         yield reader
@@ -148,7 +159,7 @@ def bag(path: str | Path) -> Iterator[AnyReader]:
 
 
 def select_connections(reader: AnyReader, topics: Iterable[str] | None = None) -> list[Connection]:
-    """The bag's connections on ``topics`` (all when None/empty); unknown topic → BagError."""
+    """Select the connections on ``topics`` (all when None/empty); unknown topic → BagError."""
     conns = list(reader.connections)
     if not topics:
         return conns
@@ -213,8 +224,11 @@ def format_summary(s: dict) -> str:
 
 def iter_raw(reader: AnyReader, connections: list[Connection] | None = None,
              ) -> Iterator[tuple[Connection, int, bytes]]:
-    """(connection, bag timestamp ns, serialized CDR bytes) in time order; read errors
-    (a corrupt chunk, a truncated file) are raised as BagError."""
+    """
+    Yield (connection, bag timestamp ns, serialized CDR bytes) in time order.
+
+    Read errors (a corrupt chunk, a truncated file) are raised as BagError.
+    """
     it = reader.messages(connections=connections) if connections is not None \
         else reader.messages()
     while True:
@@ -253,10 +267,12 @@ def image_to_array(msg) -> np.ndarray:
 
 def iter_images(path: str | Path, topic: str = '/camera/image_raw',
                 ) -> Iterator[tuple[int, object, np.ndarray]]:
-    """Offline processing: (bag timestamp ns, header, image array) for each Image on ``topic``.
+    """
+    Offline processing: (bag timestamp ns, header, image array) for each Image on ``topic``.
 
     The header (``stamp.sec``, ``stamp.nanosec``, ``frame_id``) is kept so that whatever is
-    computed from the image can carry the image's own stamp, as the live nodes do."""
+    computed from the image can carry the image's own stamp, as the live nodes do.
+    """
     with bag(path) as reader:
         conns = select_connections(reader, [topic])
         for conn, ts, raw in iter_raw(reader, conns):

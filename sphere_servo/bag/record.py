@@ -1,4 +1,5 @@
-"""record: write live topics into a rosbag2 (MCAP or sqlite3) with the ``rosbags`` library.
+"""
+record: write live topics into a rosbag2 (MCAP or sqlite3) with the ``rosbags`` library.
 
     ros2 run sphere_servo record [-o OUT] [--storage mcap|sqlite3] [--compression zstd]
                                  [--topics T ...] [--all] [--duration S] [--qos-depth N]
@@ -17,17 +18,17 @@ properly: it holds everything received before the interrupt.
 from __future__ import annotations
 
 import argparse
+from datetime import datetime
 import importlib
 import queue
 import signal
 import sys
 import threading
 import time
-from datetime import datetime
 
 from sphere_servo.bag.bagio import BagError, check_new_output, qos_time, topic_name, typestore
 
-# the pipeline's topics (module docstrings of nodes/arm_sim, detector, features, servo):
+# the pipeline's topics (module docstrings of ros/arm_sim, detector, features, servo):
 # enough to regenerate the features offline (``refeatures``) and to compare with what ran
 DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measurement',
                   'features/s_n', 'camera/cmd_vel', 'camera/cmd_vel_stamped', 'servo/state',
@@ -55,7 +56,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def import_message(msgtype: str):
-    """The rclpy message class of ``pkg/msg/Type``."""
+    """Import the rclpy message class of ``pkg/msg/Type``."""
     try:
         from rosidl_runtime_py.utilities import get_message
         return get_message(msgtype)
@@ -66,7 +67,7 @@ def import_message(msgtype: str):
 
 
 def to_bag_qos(profile):
-    """rclpy QoSProfile (as offered by a publisher) → rosbags Qos for metadata."""
+    """Convert an rclpy QoSProfile (as offered by a publisher) to a rosbags Qos for metadata."""
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability)
 
@@ -82,8 +83,12 @@ def to_bag_qos(profile):
 
 
 def subscription_qos(offered: list, depth: int):
-    """The QoS ros2 bag adapts to its publishers: reliable / transient-local only when all
-    publishers offer it (so every publisher is matched), keep-last ``depth``."""
+    """
+    Return the QoS ros2 bag adapts to its publishers, keep-last ``depth``.
+
+    Reliable / transient-local only when all publishers offer it (so every publisher is
+    matched).
+    """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
     latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
@@ -95,6 +100,7 @@ def subscription_qos(offered: list, depth: int):
 
 class _Topic:
     """A topic's connection in the bag, bound by the writer thread."""
+
     __slots__ = ('name', 'conn')
 
     def __init__(self, name: str):
@@ -102,9 +108,12 @@ class _Topic:
 
 
 class BagSink:
-    """A rosbags Writer owned by one thread (sqlite3 objects must stay in the thread that
-    made them): it opens the bag, adds connections and writes messages from a FIFO queue,
-    so the executor only queues bytes; ``close()`` drains the queue and closes the bag."""
+    """
+    A rosbags Writer owned by one thread (sqlite3 objects stay in the thread that made them).
+
+    The thread opens the bag, adds connections and writes messages from a FIFO queue, so
+    the executor only queues bytes; ``close()`` drains the queue and closes the bag.
+    """
 
     def __init__(self, writer):
         self.writer = writer
@@ -173,6 +182,7 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
     from rclpy.node import Node
 
     class Recorder(Node):
+
         def __init__(self):
             super().__init__('recorder')
             self.sink = sink
@@ -191,9 +201,12 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
             self.create_service(Trigger, '~/ready', self._srv_ready)
 
         def missing(self) -> list[str]:
-            """Topics not yet recorded from every publisher the graph shows: a wanted topic
-            not subscribed yet, or a subscription matched with fewer publishers than its
-            topic has."""
+            """
+            Topics not yet recorded from every publisher the graph shows.
+
+            A wanted topic not subscribed yet, or a subscription matched with fewer
+            publishers than its topic has.
+            """
             out = sorted(self.wanted - set(self.subs))
             for name, sub in sorted(self.subs.items()):
                 if sub.get_publisher_count() < self.count_publishers(name):
@@ -257,14 +270,17 @@ def _interrupt(signum, frame):
 
 
 def drain(executor, sink: BagSink, quiet: float = 3.5, limit: float = 8.0) -> None:
-    """Take what is still on its way before closing the bag. A recorder sharing two cores
-    with four busy nodes gets the small topics (camera_info, joint_states) of a fast
-    lockstep run in late bursts, up to ~3 s behind their images (Fast DDS's reliable
-    repair, at its 3 s heartbeat, of what the loaded localhost sockets dropped): stopping at
-    once lost the run's last seconds on them. Spins until no new message (repeats of a
-    topic's previous one do not count) has arrived for ``quiet`` s — longer than one
-    heartbeat — and ``limit`` s at most (a live camera keeps sending; the launcher's
-    SIGKILL comes after 10 s)."""
+    """
+    Take what is still on its way before closing the bag.
+
+    A recorder sharing two cores with four busy nodes gets the small topics (camera_info,
+    joint_states) of a fast lockstep run in late bursts, up to ~3 s behind their images
+    (Fast DDS's reliable repair, at its 3 s heartbeat, of what the loaded localhost sockets
+    dropped): stopping at once would lose the run's last seconds on them. Spins until no
+    new message (repeats of a topic's previous one do not count) has arrived for ``quiet``
+    s — longer than one heartbeat — and ``limit`` s at most (a live camera keeps sending;
+    the launcher's SIGKILL comes after 10 s).
+    """
     end = time.monotonic() + limit
     last, idle = sink.fresh, time.monotonic()
     while time.monotonic() < end and time.monotonic() - idle < quiet:
@@ -297,7 +313,7 @@ def main(args=None) -> int:
     topics = None if opts.all and opts.topics is None else (opts.topics or DEFAULT_TOPICS)
 
     # rclpy's own handler would shut the context down on Ctrl-C, and then nothing could be
-    # drained: Ctrl-C and SIGTERM raise KeyboardInterrupt instead (as in nodes/params.run)
+    # drained: Ctrl-C and SIGTERM raise KeyboardInterrupt instead (as in ros/params.run)
     from rclpy.signals import SignalHandlerOptions
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, _interrupt)

@@ -1,4 +1,5 @@
-"""replay: republish a rosbag2 (MCAP or sqlite3, ours or one by ``ros2 bag record``).
+"""
+replay: republish a rosbag2 (MCAP or sqlite3, ours or one by ``ros2 bag record``).
 
     ros2 run sphere_servo replay BAG [--topics T ...] [--rate R | --max-rate] [--loop]
                                  [--clock [HZ]] [--remap OLD:=NEW ...] [--delay S]
@@ -45,8 +46,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def split_ros_args(args: list[str]) -> tuple[list[str], list[str]]:
-    """(our arguments, the ``--ros-args ... [--]`` sections). Unlike ``remove_ros_args`` this
-    keeps ``OLD:=NEW`` words, which rcl would take for (deprecated) global remap rules."""
+    """
+    Split ``args`` into (our arguments, the ``--ros-args ... [--]`` sections).
+
+    Unlike ``remove_ros_args`` this keeps ``OLD:=NEW`` words, which rcl would take for
+    (deprecated) global remap rules.
+    """
     ours, ros = [], []
     it = iter(args)
     for a in it:
@@ -75,7 +80,7 @@ def parse_remaps(remaps: list[str]) -> dict[str, str]:
 
 
 def publisher_qos(conn):
-    """The QoS of the recording's first publisher (as ros2 bag play), keep-last ≥ 10."""
+    """Return the QoS of the recording's first publisher (as ros2 bag play), keep-last ≥ 100."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     offered = getattr(conn.ext, 'offered_qos_profiles', None) or []
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -162,8 +167,11 @@ class Player:
         return sent
 
     def flush(self, timeout: float = 3.0) -> None:
-        """Wait until reliable subscribers acknowledged what was published, so the last
-        messages are not lost when the process exits right after publishing them."""
+        """
+        Wait until reliable subscribers acknowledged what was published.
+
+        Then the last messages are not lost when the process exits right after publishing.
+        """
         from rclpy.duration import Duration
         deadline = time.monotonic() + timeout
         for p in [*self.pubs.values(), self.clock_pub]:

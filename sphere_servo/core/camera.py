@@ -1,4 +1,5 @@
-"""Pinhole camera model (no ROS).
+"""
+Pinhole camera model (no ROS).
 
 Pixel ``(u, v)`` ↔ normalized image point ``x̄ = (x, y, 1) = K⁻¹ (u, v, 1)`` (DESIGN.md §1),
 with ``K = [[px, 0, u0], [0, py, v0], [0, 0, 1]]``. Optional plumb_bob distortion
@@ -16,7 +17,6 @@ import numpy as np
 
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2
-
 
 
 @dataclass(frozen=True)
@@ -66,8 +66,7 @@ class CameraIntrinsics:
 
     # --- projections --------------------------------------------------------------------
     def pixel_to_normalized(self, uv: Points2) -> Points2:
-        """(N, 2) pixels → (N, 2) normalized ``(x, y)`` (undistorted if the model has
-        distortion)."""
+        """(N, 2) pixels → (N, 2) normalized ``(x, y)`` (undistorted if the model has it)."""
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         xy = np.column_stack([(uv[:, 0] - self.u0) / self.px, (uv[:, 1] - self.v0) / self.py])
         return self.undistort(xy) if self.has_distortion else xy
@@ -80,8 +79,11 @@ class CameraIntrinsics:
         return np.column_stack([self.px * xy[:, 0] + self.u0, self.py * xy[:, 1] + self.v0])
 
     def project(self, cP: np.ndarray) -> Points2:
-        """(N, 3) points in the camera optical frame → (N, 2) pixels. Points with z ≤ 0 are
-        behind the camera and raise :class:`GeometryError`."""
+        """
+        (N, 3) points in the camera optical frame → (N, 2) pixels.
+
+        Points with z ≤ 0 are behind the camera and raise :class:`GeometryError`.
+        """
         cP = np.asarray(cP, dtype=float).reshape(-1, 3)
         if np.any(cP[:, 2] <= 1e-12):
             raise GeometryError('cannot project a point at or behind the camera centre')

@@ -1,4 +1,5 @@
-"""Control law (no ROS). DESIGN.md §4, paper eq. (17).
+"""
+Control law (no ROS). DESIGN.md §4, paper eq. (17).
 
 ``v_c = −λ L̂⁺ (s − s*)``: ``v_c = (v, ω)`` (6,) is the camera twist in the current camera
 frame (m/s, rad/s); ``L̂`` is the interaction matrix with the estimated radius ``r̂``,
@@ -13,13 +14,13 @@ Convergence: ``‖s − s*‖₂ < tol``.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
 from sphere_servo.core import linalg
-from sphere_servo.core.features import FeatureSet, STFeatures, SnFeatures, check_radius
+from sphere_servo.core.features import check_radius, FeatureSet, SnFeatures, STFeatures
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import Observation
 
@@ -34,8 +35,12 @@ class ControlError(GeometryError):
 
 @dataclass(frozen=True)
 class AdaptiveGain:
-    """ViSP's adaptive gain. ``lambda_0`` at x = 0, ``lambda_inf`` as x → ∞, ``slope_0`` =
-    dλ/dx at 0 (magnitude). Requires ``lambda_0 > lambda_inf > 0``, ``slope_0 > 0``."""
+    """
+    ViSP's adaptive gain.
+
+    ``lambda_0`` at x = 0, ``lambda_inf`` as x → ∞, ``slope_0`` = dλ/dx at 0 (magnitude).
+    Requires ``lambda_0 > lambda_inf > 0``, ``slope_0 > 0``.
+    """
 
     lambda_0: float = 4.0
     lambda_inf: float = 0.4
@@ -127,7 +132,8 @@ class _Law:
 
 
 class Controller(_Law):
-    """``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
+    """
+    ``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
 
     r_hat        estimated radius r̂ (m), finite and > 0 (``ValueError`` otherwise).
     gain         constant λ > 0, or an :class:`AdaptiveGain`.
@@ -142,22 +148,30 @@ class Controller(_Law):
         self._L_desired = features.interaction(features.desired_obs, self.r_hat)
 
     def L_hat(self, obs: Observation, s: np.ndarray | None = None) -> np.ndarray:
-        """``L̂`` (n×6) at current / desired / mean features (``s``: the current features,
-        if already computed)."""
+        """
+        ``L̂`` (n×6) at current / desired / mean features.
+
+        ``s``: the current features, if already computed.
+        """
         if self.interaction == 'desired':
             return self._L_desired
         return self._combine(self.features.interaction(obs, self.r_hat, s), self._L_desired)
 
     def compute(self, obs: Observation) -> ControlOutput:
-        """Twist for the current observation. Raises a ``ValueError`` subclass
+        """
+        Twist for the current observation.
+
+        Raises a ``ValueError`` subclass
         (:class:`~sphere_servo.core.measurement.MeasurementError` or :class:`ControlError`)
-        instead of ever returning a non-finite twist: the caller then sends zero velocity."""
+        instead of ever returning a non-finite twist: the caller then sends zero velocity.
+        """
         s = self.features.features(obs)
         return self._twist(s - self.features.desired, self.L_hat(obs, s))
 
 
 class VectorController(_Law):
-    """The same law from feature *vectors* alone, as the servo node receives them.
+    """
+    The same law from feature *vectors* alone, as the servo node receives them.
 
     For ``s_n`` (eq. 6) and ``s`` (eq. 16) the interaction matrix is a function of the
     feature vector only, so ``compute(s, s_star)`` needs nothing else. (``s_cc``'s ζ rows need

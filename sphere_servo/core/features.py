@@ -1,4 +1,5 @@
-"""The three feature sets of the paper's Table I and their interaction matrices (no ROS).
+"""
+The three feature sets of the paper's Table I and their interaction matrices (no ROS).
 
 DESIGN.md §3. For each set, ``ṡ = L v_c`` with ``v_c = (v, ω)`` the camera twist in the
 *current* camera frame. Every matrix takes the estimated radius ``r̂`` in place of r.
@@ -22,16 +23,21 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from sphere_servo.core.geometry import L_omega, cross3, exp3, log3, skew
-from sphere_servo.core.measurement import (MeasurementError, Observation, P3_over_r, P_over_r, cRo_measured)
+from sphere_servo.core.geometry import cross3, exp3, L_omega, log3, skew
+from sphere_servo.core.measurement import (cRo_measured, MeasurementError, Observation,
+                                           P3_over_r, P_over_r)
 from sphere_servo.core.targets import CC
 
 FEATURE_SETS = ('s_n', 's', 's_cc')
 
 
 def check_radius(r_hat: float) -> float:
-    """``r̂`` as a float; raises ``ValueError`` unless it is finite and > 0 (paper §III: the
-    ``s_n`` law is stable for every ``r̂ > 0`` and diverges for ``r̂ ≤ 0``; never clamp)."""
+    """
+    Return ``r̂`` as a float; raise ``ValueError`` unless it is finite and > 0.
+
+    Paper §III: the ``s_n`` law is stable for every ``r̂ > 0`` and diverges for ``r̂ ≤ 0``;
+    never clamp.
+    """
     try:
         r = float(r_hat)
     except (TypeError, ValueError):
@@ -42,7 +48,8 @@ def check_radius(r_hat: float) -> float:
 
 
 class FeatureSet(ABC):
-    """A feature set anchored on a desired observation.
+    """
+    A feature set anchored on a desired observation.
 
     ``features(obs)`` → s (n,), ``desired`` → s* (n,), ``error(obs)`` → s − s* (n,),
     ``interaction(obs, r_hat)`` → L (n, 6).
@@ -75,7 +82,8 @@ class FeatureSet(ABC):
 
 
 class SnFeatures(FeatureSet):
-    """``s_n = (s_n,t, θu)`` — the paper's minimal set, eqs. (5)–(7).
+    """
+    ``s_n = (s_n,t, θu)`` — the paper's minimal set, eqs. (5)–(7).
 
     ``L = [[−(1/r̂) I₃, [s_n,t]×], [0, L_ω(θu)]]`` with ``L_ω`` of DESIGN.md §3 (``+`` sign on
     ``[u]×``: θu = log(ᶜ*R_c), ω in the current frame; the paper's eq. (7) prints ``−``).
@@ -111,8 +119,10 @@ class SnFeatures(FeatureSet):
 
 
 class STFeatures(SnFeatures):
-    """``s = (s_t, θu)`` with ``s_t = s*_n,t − ᶜ*R_c s_n,t`` (eq. 15) — a 3-D servo on the
-    camera position ``ᶜ*t_c / r`` (no control of the target in the image).
+    """
+    ``s = (s_t, θu)`` with ``s_t = s*_n,t − ᶜ*R_c s_n,t`` (eq. 15), a 3-D servo.
+
+    It servos the camera position ``ᶜ*t_c / r`` (no control of the target in the image).
 
     ``L = [[(1/r̂) ᶜ*R_c, 0], [0, L_ω(θu)]]`` (eq. 16).
     """
@@ -153,7 +163,8 @@ def _V(q1: np.ndarray, q2: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 class SccFeatures(FeatureSet):
-    """``s_cc = (r_δ, b, ζ)`` (7 features), the previous set of the paper's ref. [13].
+    """
+    ``s_cc = (r_δ, b, ζ)`` (7 features), the previous set of the paper's ref. [13].
 
     ``ζ = log(V V*ᵀ)``; with ``ρ1 = ‖P1‖``, ``ρ2 = ‖P2‖`` (or ``‖P3‖``, the CC tip) scaled by r̂:
 
@@ -219,8 +230,11 @@ _CLASSES = {'s_n': SnFeatures, 's': STFeatures, 's_cc': SccFeatures}
 
 
 def register_feature_set(name: str, cls: type) -> None:
-    """Make ``make_feature_set(name, …)`` build ``cls`` (a :class:`FeatureSet`), e.g. a
-    baseline kept outside the paper's three sets (``core/ibvs.py``)."""
+    """
+    Make ``make_feature_set(name, …)`` build ``cls`` (a :class:`FeatureSet`).
+
+    For a baseline kept outside the paper's three sets, e.g. ``experiments/ibvs.py``.
+    """
     if not (isinstance(cls, type) and issubclass(cls, FeatureSet)):
         raise TypeError(f'{cls!r} is not a FeatureSet subclass')
     _CLASSES.setdefault(name, cls)
@@ -237,12 +251,14 @@ def feature_names(name: str) -> tuple:
 
 
 def make_feature_set(name: str, desired: Observation) -> FeatureSet:
-    """Feature set ``'s_n'``, ``'s'``, ``'s_cc'`` (or a registered one) anchored on the
-    desired observation."""
+    """
+    Build feature set ``name``: ``'s_n'``, ``'s'``, ``'s_cc'`` or a registered one.
+
+    The set is anchored on the desired observation ``desired``.
+    """
     try:
         cls = _CLASSES[name]
     except KeyError:
         raise ValueError(f'unknown feature set {name!r}: use one of {tuple(_CLASSES)}') \
             from None
     return cls(desired)
-

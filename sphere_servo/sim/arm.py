@@ -1,4 +1,5 @@
-"""The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
+"""
+The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
 
 - Robot: the UR5 URDF of ``example-robot-data``, loaded with Pinocchio (:func:`find_ur5_urdf`
   says where it is looked for).
@@ -31,12 +32,12 @@
 """
 from __future__ import annotations
 
-import glob
-import os
-import sys
 from dataclasses import dataclass, field
 from enum import Enum
+import glob
+import os
 from pathlib import Path
+import sys
 
 import numpy as np
 import pinocchio as pin
@@ -57,7 +58,8 @@ class Status(str, Enum):
 
 @dataclass
 class StepInfo:
-    """What the last mapping/step did.
+    """
+    What the last mapping/step did.
 
     status   the most important condition (timeout > joint_limit > singularity > ok).
     joints   names of the joints locked at a position limit (for ``joint_limit``).
@@ -87,11 +89,15 @@ class StepInfo:
 
 
 def find_ur5_urdf(override: str | os.PathLike | None = None) -> str:
-    """Path of ``ur5_robot.urdf``. Looked for, in this order: ``override``; the environment
-    variable ``SPHERE_SERVO_UR5_URDF``; ``cmeel.prefix/share/…`` under ``sys.prefix`` and
-    every ``site-packages`` on ``sys.path`` (the PyPI ``example-robot-data`` wheel); the
-    ``example-robot-data`` share directory of an ament (full ROS) install.
-    Raises ``FileNotFoundError`` listing the places searched."""
+    """
+    Path of ``ur5_robot.urdf``.
+
+    Looked for, in this order: ``override``; the environment variable
+    ``SPHERE_SERVO_UR5_URDF``; ``cmeel.prefix/share/…`` under ``sys.prefix`` and every
+    ``site-packages`` on ``sys.path`` (the PyPI ``example-robot-data`` wheel); the
+    ``example-robot-data`` share directory of an ament (full ROS) install. Raises
+    ``FileNotFoundError`` listing the places searched.
+    """
     tried = []
     for cand in (override, os.environ.get(URDF_ENV)):
         if cand:
@@ -119,7 +125,7 @@ def find_ur5_urdf(override: str | os.PathLike | None = None) -> str:
         tried.append('ament index: example-robot-data')
     raise FileNotFoundError(
         'UR5 URDF (example-robot-data) not found; install it with '
-        "`pip install example-robot-data` or set SPHERE_SERVO_UR5_URDF. Searched: "
+        '`pip install example-robot-data` or set SPHERE_SERVO_UR5_URDF. Searched: '
         + '; '.join(tried))
 
 
@@ -135,7 +141,8 @@ def pose_to_xyz_rpy(M: pin.SE3) -> tuple[np.ndarray, np.ndarray]:
 
 
 class ArmModel:
-    """UR5 + eye-in-hand camera kinematics, DLS command mapping, limits and a watchdog.
+    """
+    UR5 + eye-in-hand camera kinematics, DLS command mapping, limits and a watchdog.
 
     Parameters
     ----------
@@ -149,6 +156,7 @@ class ArmModel:
     velocity_scale fraction of the URDF joint velocity limits used (0, 1].
     cmd_timeout    watchdog timeout, seconds of simulated time.
     limit_margin   distance (rad) to a position limit within which a joint counts as at it.
+
     """
 
     def __init__(self, urdf_path=None, tool0Mc: pin.SE3 | None = None,
@@ -244,8 +252,11 @@ class ArmModel:
         return float(np.linalg.svd(self.camera_jacobian(q), compute_uv=False)[-1])
 
     def _dls(self, J: np.ndarray, v: np.ndarray, sigma_min: float) -> np.ndarray:
-        """Damped least squares ``Jᵀ(JJᵀ + λ²I)⁻¹ v`` with λ² = λ_max²(1 − (σ/σ₀)²) below
-        σ₀ = singular_threshold, 0 above (Nakamura–Chiaverini)."""
+        """
+        Damped least squares ``Jᵀ(JJᵀ + λ²I)⁻¹ v`` (Nakamura–Chiaverini).
+
+        λ² = λ_max²(1 − (σ/σ₀)²) below σ₀ = singular_threshold, 0 above.
+        """
         lam2 = 0.0
         if sigma_min < self.singular_threshold:
             lam2 = self.damping ** 2 * (1.0 - (sigma_min / self.singular_threshold) ** 2)
@@ -254,10 +265,13 @@ class ArmModel:
 
     # --- command mapping ----------------------------------------------------------------
     def twist_to_qdot(self, v_c, dt: float | None = None) -> StepInfo:
-        """Joint velocities realising camera twist ``v_c`` at the current configuration, with
-        limits applied (see the module docstring). ``dt`` (if given) lands joints exactly
-        on limits they would cross within the step. Raises ``ValueError`` on a non-finite
-        or wrongly-sized twist."""
+        """
+        Joint velocities realising camera twist ``v_c`` at the current configuration.
+
+        Limits are applied (see the module docstring). ``dt`` (if given) lands joints
+        exactly on limits they would cross within the step. Raises ``ValueError`` on a
+        non-finite or wrongly-sized twist.
+        """
         v_c = np.asarray(v_c, dtype=float).ravel()
         if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
             raise ValueError(f'camera twist must be 6 finite numbers, got {v_c}')
@@ -318,8 +332,11 @@ class ArmModel:
         return info
 
     def command(self, v_c) -> None:
-        """Set the camera twist to execute from now on (stamped with the sim time).
-        Raises ``ValueError`` on NaN/inf or a wrong size, leaving the previous command."""
+        """
+        Set the camera twist to execute from now on (stamped with the sim time).
+
+        Raises ``ValueError`` on NaN/inf or a wrong size, leaving the previous command.
+        """
         v_c = np.asarray(v_c, dtype=float).ravel()
         if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
             raise ValueError(f'camera twist must be 6 finite numbers, got {v_c}')
@@ -352,10 +369,13 @@ class ArmModel:
     # --- inverse kinematics -------------------------------------------------------------
     def solve_ik(self, wMc_des: pin.SE3, q_seed=None, tol: float = 1e-6,
                  max_iter: int = 500, damping: float = 1e-3) -> tuple[np.ndarray, bool, float]:
-        """Joint configuration putting the camera at ``wMc_des``, by iterating DLS on the
-        camera-frame error ``log6(wMc⁻¹ wMc_des)`` from ``q_seed`` (current q by default),
-        kept within the position limits. Returns ``(q, converged, error_norm)``; does not
-        move the arm."""
+        """
+        Joint configuration putting the camera at ``wMc_des``; does not move the arm.
+
+        DLS iterated on the camera-frame error ``log6(wMc⁻¹ wMc_des)`` from ``q_seed``
+        (current q by default), kept within the position limits. Returns
+        ``(q, converged, error_norm)``.
+        """
         q = self.q.copy() if q_seed is None else self._check_q(q_seed, 'q_seed')
         err = np.inf
         for _ in range(max_iter):
