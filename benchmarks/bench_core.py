@@ -14,8 +14,8 @@ import numpy as np
 from sphere_servo.core.control import Controller
 from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.measurement import Observation, observe, sphere_from_conic, unit_ray
-from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
 from sphere_servo.core.targets import special_sphere
+from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
 
 
 def _median_us(fn, n: int) -> float:

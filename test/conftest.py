@@ -25,7 +25,7 @@ import time
 
 import pytest
 
-from sphere_servo.bringup.launcher import interrupt
+from sphere_servo.bringup.processes import interrupt
 
 REPO = Path(__file__).resolve().parents[1]
 _domain_counter = itertools.count()

@@ -7,20 +7,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from conftest import executable_path, wait_for
+from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
 import numpy as np
 import pinocchio as pin
 import pytest
-from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
 from sensor_msgs.msg import CameraInfo, Image, JointState
-
-from conftest import executable_path, wait_for
+from sphere_servo.bringup.processes import Launcher
+from sphere_servo.bringup.supervisor import Supervisor
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.experiments.scenarios import CMO_DESIRED
 from sphere_servo.core.targets import special_sphere
+from sphere_servo.experiments.scenarios import CMO_DESIRED
+from sphere_servo.pipeline.config import find_config, load_config, node_params
+from sphere_servo.pipeline.servo import ServoState
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, header,
-                                            image_from_array, se3_from_pose)
+                                          image_from_array, se3_from_pose)
 from sphere_servo.sim.arm import pose_from_xyz_rpy
-from sphere_servo.bringup import launcher
 from sphere_servo.vision.renderer import Renderer
 
 EXECUTABLES = ('arm_sim', 'detector', 'features', 'servo', 'launcher', 'record', 'replay',
@@ -32,8 +34,8 @@ def stamp(msg) -> float:
 
 
 def desired_cMo(config_name: str) -> pin.SE3:
-    cfg = launcher.load_config(launcher.find_config(config_name))
-    d = launcher.node_params(cfg, 'arm_sim')['desired_cMo']
+    cfg = load_config(find_config(config_name))
+    d = node_params(cfg, 'arm_sim')['desired_cMo']
     return pose_from_xyz_rpy(d[:3], d[3:])
 
 
@@ -87,8 +89,8 @@ def test_full_loop_converges(config, ideal, launch, test_node):
     # twists follow the images in order. (The exact header chain image → measurement →
     # features → twist is asserted node by node below; this observer may miss messages on a
     # loaded machine, so it does not match sets here.)
-    period = 1.0 / launcher.node_params(launcher.load_config(launcher.find_config(config)),
-                                        'arm_sim').get('camera_rate', 30.0)
+    period = 1.0 / node_params(load_config(find_config(config)),
+                               'arm_sim').get('camera_rate', 30.0)
     for msgs in (topics.meas, topics.twists):
         k = (np.array([stamp(m) for m in msgs]) - 1.0) / period  # sim time starts at 1 s
         assert np.allclose(k, np.round(k), atol=1e-6), 'a stamp that is not a frame time'
@@ -216,8 +218,8 @@ def test_servo_safety(launch, test_node):
     assert spin(5.0, until=lambda: any(at(m, t_ok) for m in stamped)), proc.log()
     moving = [m for m in stamped if at(m, t_ok)][0]
     assert _norm(moving.twist) > 0
-    assert spin(5.0, until=lambda: any(m.message == 'servoing' for m in states))
-    state = [m for m in states if m.message == 'servoing'][-1]
+    assert spin(5.0, until=lambda: any(m.message == ServoState.SERVOING.value for m in states))
+    state = [m for m in states if m.message == ServoState.SERVOING.value][-1]
     age = float({kv.key: kv.value for kv in state.values}['image_age'])
     assert 0.0 <= age < 0.5, age
     cases = [lambda t: features_msg('s_n', header(t, 'cam')),                   # lost
@@ -228,7 +230,7 @@ def test_servo_safety(launch, test_node):
         pub.publish(make(t))
         assert spin(5.0, until=lambda: any(at(m, t) for m in stamped)), proc.log()
         assert _norm([m for m in stamped if at(m, t)][0].twist) == 0
-        assert spin(5.0, until=lambda: any(m.message == 'target lost' and {
+        assert spin(5.0, until=lambda: any(m.message == ServoState.TARGET_LOST.value and {
             kv.key: kv.value for kv in m.values}.get('stamp', '').startswith(str(int(t)))
             for m in states))
     # late images (2 s old, max_image_age 0.5 s) are not answered; with nothing else for
@@ -240,7 +242,8 @@ def test_servo_safety(launch, test_node):
         spin(0.1)
     assert not [m for m in stamped if stamp(m) < t_late - 1.0], 'a late image was answered'
     assert 'skipping features of an image' in proc.log()
-    assert any(m.message == 'stale' for m in states[-5:]), [m.message for m in states[-5:]]
+    assert any(m.message == ServoState.STALE.value for m in states[-5:]), [
+        m.message for m in states[-5:]]
     assert twists and all(_norm(t) == 0 for t in twists)
     twists.clear()
     assert proc.stop() == 0
@@ -303,14 +306,14 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
     """Kill ``detector`` mid-run: the servo sends zero velocity within its timeout and the
     arm stops; restart it: the loop resumes and converges."""
     import time
-    cfg = launcher.load_config(launcher.find_config('special_sphere'))
-    timeout = launcher.node_params(cfg, 'servo')['timeout']
+    cfg = load_config(find_config('special_sphere'))
+    timeout = node_params(cfg, 'servo')['timeout']
     out = open(tmp_path / 'launch.log', 'w')
-    run = launcher.Launcher(cfg, out=out, env=ros_env)
+    run = Launcher(cfg, out=out, env=ros_env)
     sup = None
     try:
         run.start()
-        sup = launcher.Supervisor(cfg, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+        sup = Supervisor(cfg, domain_id=int(ros_env['ROS_DOMAIN_ID']))
         twists, joints = [], []
         sup.node.create_subscription(Twist, 'camera/cmd_vel',
                                      lambda m: twists.append((time.monotonic(), m)), 50)
@@ -318,11 +321,11 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
                                      lambda m: joints.append((time.monotonic(), m)), 50)
         sup.teach(lambda msg: out.write(msg + '\n'), lambda: not run.dead())
         assert sup.wait(lambda: int(sup.state_values.get('iteration', 0)) > 60, 60.0)
-        assert sup.state == 'servoing'
+        assert sup.state is ServoState.SERVOING
         run.children['detector'].popen.kill()
         t_kill = time.monotonic()
         sup.spin(timeout + 1.0)
-        assert sup.state == 'stale', sup.state
+        assert sup.state is ServoState.STALE, sup.state
         late = [m for t, m in twists if t > t_kill + timeout + 0.2]
         assert late and all(_norm(m) == 0 for m in late)
         # at rest: the newest joint states (by sim stamp; under load Fast DDS delivers the
@@ -474,7 +477,8 @@ def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
     from diagnostic_msgs.msg import DiagnosticStatus
     node.create_subscription(DiagnosticStatus, 'servo/state', lambda m: states.append(m), 50)
     proc = launch('launcher', '--config', 'special_sphere')
-    assert spin(90.0, until=lambda: any(m.message == 'servoing' for m in states)), proc.log()
+    assert spin(90.0, until=lambda: any(m.message == ServoState.SERVOING.value
+                                        for m in states)), proc.log()
     assert proc.stop(timeout=30.0) == 0, proc.log()[-3000:]
     log = proc.log()
     assert 'interrupted: stopping the nodes' in log

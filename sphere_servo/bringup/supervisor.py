@@ -1,0 +1,297 @@
+"""
+The launcher's rclpy node: runs the teach sequence, watches the servo, collects histories.
+
+The servo's state arrives as its status message's text and is read as a
+:class:`~sphere_servo.pipeline.servo.ServoState`.
+"""
+from __future__ import annotations
+
+import collections
+import time
+
+import numpy as np
+
+from sphere_servo.bringup.processes import LaunchError
+from sphere_servo.pipeline.config import node_params
+from sphere_servo.pipeline.servo import ServoState
+
+HISTORY_DEPTH = 1000  # the supervisor's subscriptions to the per-frame topics
+
+
+class Supervisor:
+    """
+    An rclpy node in the launcher: the teach sequence, the servo's state, the histories.
+
+    It runs the teach sequence, watches the servo's state (``state``: a
+    :class:`~sphere_servo.pipeline.servo.ServoState`, None before the first status or after
+    an unknown one) and, if asked, collects the time histories for the figures.
+    """
+
+    def __init__(self, config: dict, collect: bool = False, domain_id: int | None = None):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticStatus
+        from geometry_msgs.msg import PoseStamped, TwistStamped
+        from sensor_msgs.msg import JointState
+
+        self.rclpy = rclpy
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node('launcher', context=self.ctx)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.config = config
+        self.state: ServoState | None = None
+        self.state_values: dict[str, str] = {}
+        self.poses: list = []          # (stamp, oMc 4×4)
+        self.measurements: list = []   # (stamp, {name: value})
+        self.features: list = []       # (stamp, s, s*)
+        self.twists: list = []         # (stamp, v (6,))
+        self.collect = collect
+        self.last_pose = None
+        self.last_meas_stamp = -1.0
+        self.t_start = 0.0  # stamp of the first image at the start pose
+        self.t_enabled = None    # stamp of the first image the enabled servo answered
+        self.t_converged = None  # stamp of the first image the servo called converged, after
+        #                          t_start, and the servo's iteration count there (it counts
+        #                          enabled iterations only: the same from run to run)
+        self.iterations_converged = None
+        self._clients: dict = {}
+        self.recent_poses = collections.deque(maxlen=HISTORY_DEPTH)  # (stamp, oMc)
+        self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
+        fset = node_params(config, 'servo').get('feature_set', 's_n')
+        sub = self.node.create_subscription
+        # deep histories: under load Fast DDS repairs what loaded sockets dropped in bursts of
+        # up to seconds of messages, which a shallow keep-last history would mostly discard
+        sub(DiagnosticStatus, 'servo/state', self._on_state, 10)
+        sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, HISTORY_DEPTH)
+        sub(JointState, 'detector/measurement', self._on_meas, HISTORY_DEPTH)
+        if collect:
+            sub(JointState, f'features/{fset}', self._on_features, HISTORY_DEPTH)
+            sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, HISTORY_DEPTH)
+        from std_srvs.srv import SetBool
+        for service in ('/arm_sim/go_desired', '/features/teach', '/arm_sim/go_start'):
+            self.client(service)
+        self.client('/servo/enable', SetBool)
+
+    def pose_at(self, t: float | None):
+        """Return the ground-truth pose of the image stamped ``t``, if it has arrived."""
+        if t is None:
+            return None
+        return next((M for s, M in reversed(self.recent_poses) if abs(s - t) < 1e-6), None)
+
+    def final_pose_error(self) -> tuple[float, float] | None:
+        """
+        Return (m, deg) between the taught pose and the pose the servo converged at.
+
+        That is the ground truth of the image the servo first called converged (the newest
+        pose if that one has not arrived, or the servo did not converge); None when nothing
+        was taught or no pose arrived.
+        """
+        pose = self.pose_at(self.t_converged)
+        if pose is None and self.last_pose is not None:
+            pose = self.last_pose[1]
+        if self.oMc_taught is None or pose is None:
+            return None
+        import pinocchio as pin
+        cdMc = self.oMc_taught.inverse() * pose
+        return (float(np.linalg.norm(cdMc.translation)),
+                float(np.degrees(np.linalg.norm(pin.log3(cdMc.rotation)))))
+
+    @staticmethod
+    def _t(stamp) -> float:
+        return stamp.sec + stamp.nanosec * 1e-9
+
+    def _on_state(self, msg) -> None:
+        try:
+            self.state = ServoState(msg.message)
+        except ValueError:
+            self.state = None
+            self.node.get_logger().warn(f'unknown servo state {msg.message!r}',
+                                        throttle_duration_sec=5.0)
+        self.state_values = vals = {kv.key: kv.value for kv in msg.values}
+        if self.state not in (ServoState.SERVOING, ServoState.CONVERGED):
+            return
+        try:
+            t = float(vals.get('stamp', '-1'))
+        except ValueError:
+            return
+        if t < self.t_start:
+            return
+        if self.t_enabled is None or t < self.t_enabled:
+            self.t_enabled = t
+        if self.state is ServoState.CONVERGED and (self.t_converged is None
+                                                   or t < self.t_converged):
+            self.t_converged = t
+            self.iterations_converged = int(vals.get('iteration', -1))
+
+    def _on_pose(self, msg) -> None:
+        """
+        Keep the poses; ``last_pose`` is the newest ground truth by stamp.
+
+        A late delivery of an older pose must not make the arm look back where it was.
+        """
+        from sphere_servo.ros.conversions import se3_from_pose
+        pose = (self._t(msg.header.stamp), se3_from_pose(msg.pose))
+        if self.last_pose is None or pose[0] >= self.last_pose[0]:
+            self.last_pose = pose
+        self.recent_poses.append(pose)
+        if self.collect:
+            self.poses.append((pose[0], pose[1].homogeneous.copy()))
+
+    def _on_meas(self, msg) -> None:
+        t = self._t(msg.header.stamp)
+        self.last_meas_stamp = max(self.last_meas_stamp, t)
+        if self.collect:
+            self.measurements.append((t, dict(zip(msg.name, msg.position))))
+
+    def _on_features(self, msg) -> None:
+        if msg.name:
+            self.features.append((self._t(msg.header.stamp), np.array(msg.position),
+                                  np.array(msg.velocity)))
+
+    def _on_twist(self, msg) -> None:
+        tw = msg.twist
+        self.twists.append((self._t(msg.header.stamp), np.array(
+            [tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y,
+             tw.angular.z])))
+
+    def spin(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+
+    def wait(self, pred, timeout: float, alive=lambda: True) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return True
+            if not alive():
+                return False
+            self.executor.spin_once(timeout_sec=0.02)
+        return bool(pred())
+
+    def call(self, service: str, timeout: float = 30.0, enable: bool | None = None):
+        """Call a Trigger service (SetBool with ``enable``); the response, or LaunchError."""
+        from std_srvs.srv import SetBool, Trigger
+        srv = Trigger if enable is None else SetBool
+        cli = self.client(service, srv)
+        if not self.wait(cli.service_is_ready, timeout):
+            raise LaunchError(f'service {service} not available after {timeout} s')
+        req = srv.Request() if enable is None else SetBool.Request(data=enable)
+        fut = cli.call_async(req)
+        if not self.wait(fut.done, timeout):
+            raise LaunchError(f'service {service} did not answer in {timeout} s')
+        return fut.result()
+
+    def client(self, service: str, srv=None):
+        """
+        Return the (kept) client of ``service``.
+
+        It is made once, so that discovery of a client made early has happened by the time
+        it is called (a fresh client per call took seconds to be matched under load, holding
+        the arm at the start pose).
+        """
+        if service not in self._clients:
+            if srv is None:
+                from std_srvs.srv import Trigger as srv
+            self._clients[service] = self.node.create_client(srv, service)
+        return self._clients[service]
+
+    def wait_recorder(self, timeout: float, alive) -> str | None:
+        """
+        Wait until the recorder records every topic it was asked for (its ``~/ready``).
+
+        Returns ``None`` when it does, else what it still waits for after ``timeout`` s.
+        Under load, the recorder discovers a node's topics up to seconds after the node
+        started: a run that began meanwhile would miss its first messages in the bag.
+        """
+        end = time.monotonic() + timeout
+        while True:
+            try:
+                res = self.call('/recorder/ready', max(0.5, end - time.monotonic()))
+            except LaunchError as exc:
+                return str(exc)
+            if res.success:
+                return None
+            if time.monotonic() > end or not alive():
+                return res.message
+            self.spin(0.1)
+
+    def teach(self, log, alive) -> None:
+        """
+        Teach: arm to the desired pose → teach its image → arm to the start → enable servo.
+
+        The servo must be disabled meanwhile (``start_enabled: false``): a teach reply can
+        name an image taken before the jump, and a servo acting on it would move the arm
+        away from the pose being taught.
+        """
+        from sphere_servo.sim.arm import pose_from_xyz_rpy
+        cMo_d = pose_from_xyz_rpy(*np.split(np.asarray(
+            node_params(self.config, 'arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
+            float), 2))
+        res = self.call('/arm_sim/go_desired')
+        if not res.success:
+            raise LaunchError(f'go_desired failed: {res.message}')
+        log(f'arm at the desired pose: {res.message}')
+        t_desired = _stamp_in(res.message)  # the first image at the desired pose
+
+        def at_desired():
+            if self.last_pose is None or self.last_pose[0] < t_desired - 1e-9:
+                return False
+            err = (cMo_d * self.last_pose[1]).translation  # cMo_d · oMc ≈ identity
+            return float(np.linalg.norm(err)) < 1e-3
+        if not self.wait(at_desired, 30.0, alive):
+            raise LaunchError('the arm did not reach the desired pose')
+        self.oMc_taught = self.last_pose[1]
+        end = time.monotonic() + 30.0
+        while True:  # teach the first measurement taken at the desired pose
+            res = self.call('/features/teach')
+            if res.success and _stamp_in(res.message) >= t_desired - 1e-9:
+                break
+            if time.monotonic() > end or not alive():
+                raise LaunchError(f'teach failed: {res.message} (desired pose at '
+                                  f'{t_desired:.6f} s, last measurement '
+                                  f'{self.last_meas_stamp:.6f} s)')
+            self.spin(0.2)
+        log(res.message)
+        res = self.call('/arm_sim/go_start')
+        if not res.success:
+            raise LaunchError(f'go_start failed: {res.message}')
+        self.t_start = _stamp_in(res.message)  # the first image at the start pose
+        if not self.wait(lambda: self.last_pose[0] >= self.t_start - 1e-9 and not at_desired(),
+                         30.0, alive):
+            raise LaunchError('the arm did not leave the desired pose')
+        log(f'arm at the start pose: {res.message}')
+        self.enable_servo(log)
+
+    def enable_servo(self, log) -> None:
+        res = self.call('/servo/enable', enable=True)
+        if not res.success:
+            raise LaunchError(f'cannot enable the servo: {res.message}')
+        log(res.message)
+
+    def converged(self) -> bool:
+        """Tell whether the servo reports convergence on an image taken after the jump."""
+        try:
+            stamp = float(self.state_values.get('stamp', '-1'))
+        except ValueError:
+            return False
+        return self.state is ServoState.CONVERGED and stamp >= self.t_start
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.ctx)
+
+
+def _stamp_in(message: str) -> float:
+    """
+    Read the stamp 'sec.nanosec' that ends a teach or go_* service reply.
+
+    The features node's teach reply and arm_sim's go_* replies end with it; -1 if there
+    is none.
+    """
+    try:
+        return float(message.rsplit(' ', 1)[-1])
+    except ValueError:
+        return -1.0
