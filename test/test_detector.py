@@ -12,11 +12,13 @@ from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import (MeasurementError, cRo_measured, mark_visible,
                                            model_cRo_offset, observe)
 from sphere_servo.core.targets import balloon, cc_target, special_sphere
-from sphere_servo.vision.detector import Detector, image_from_buffer
+from sphere_servo.core.conics import conic_bbox
+from sphere_servo.vision.detector import Detector
+from sphere_servo.vision.image import image_from_buffer
 from sphere_servo.vision.poses import incidence_deg
 from sphere_servo.vision.poses import random_poses as _random_poses
 from sphere_servo.vision.poses import silhouette_px_conic as _silhouette
-from sphere_servo.vision.renderer import Renderer, conic_bbox
+from sphere_servo.vision.renderer import Renderer
 
 CAM = CameraIntrinsics()          # 640×480, px = py = 600
 # The accuracy pose set: seeded poses at 0.25–1.0 m, sphere fully in view, uniformly random
@@ -289,10 +291,10 @@ def test_balloon_is_detected_with_a_worse_quality_than_a_sphere():
 
 
 def test_conic_helpers_recover_an_ellipse():
-    """fit_conic / sampson_distance / ellipse_params (also used by core.observers): exact on
+    """fit_conic / sampson_distance / ellipse_params (also used by sim.observers): exact on
     noiseless points of a rotated, off-centre ellipse, whatever the scale of the coordinates
     (pixels or normalized), and the Sampson distance is the geometric one near the curve."""
-    from sphere_servo.vision.detector import ellipse_params, fit_conic, sampson_distance
+    from sphere_servo.core.conics import ellipse_params, fit_conic, sampson_distance
     t = np.linspace(0.0, 2 * np.pi, 37, endpoint=False)[:25]         # a 240° arc
     for (cx, cy), (a, b), ang in (((412.3, 171.9), (63.0, 41.5), 0.7),
                                   ((0.21, -0.13), (0.08, 0.05), -1.1)):

@@ -1,10 +1,13 @@
-"""From image measurements to the paper's geometric quantities (no ROS). DESIGN.md §2.
+"""
+From image measurements to the paper's geometric quantities (no ROS). DESIGN.md §2.
 
 Inputs are in *normalized* image coordinates (``x̄ = K⁻¹ (u, v, 1)``); unit vectors
-``q = x̄/‖x̄‖`` are the spherical projections (camera optical frame, z forward).
+``q = x̄/‖x̄‖`` are the spherical projections (camera optical frame, z forward). The conic
+algebra itself (fits, ellipses, blob moments → conic, silhouettes) is
+:mod:`sphere_servo.core.conics`.
 
 - :func:`sphere_from_conic`   conic C of the sphere's image → ``b``, ``r_δ``, ``s_n,t = b/r_δ``
-- :func:`conic_from_moments`  blob centroid + covariance → the ellipse's conic
+- :func:`sphere_from_moments` the same from a blob's centroid and covariance
 - :func:`depth_ratio`         ``‖P‖/r`` of a surface mark, eq. (11)–(12), σ = −1
 - :func:`cRo_special`, :func:`cRo_cc`   partial pose ``ᶜR_o``, eqs. (8)–(14) and the CC form
 - :func:`observe`             exact :class:`Observation` of a target from a pose (ground truth)
@@ -19,10 +22,11 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core import linalg
-from sphere_servo.core.geometry import GeometryError, normalize, require_finite
-from sphere_servo.core.targets import CC, SPECIAL, Target, mark_names
+# conic_from_ellipse: re-exported, its callers knew it from here
+from sphere_servo.core.conics import conic_from_ellipse, conic_from_moments  # noqa: F401
+from sphere_servo.core.geometry import GeometryError, normalize
+from sphere_servo.core.targets import CC, mark_names, SPECIAL, Target
 from sphere_servo.core.types import Mat3, Vec3
-
 
 
 class MeasurementError(GeometryError):
@@ -107,35 +111,9 @@ def sphere_from_conic(C: np.ndarray) -> SphereMeasurement:
     return SphereMeasurement(b=b, r_delta=r_delta, quality=quality)
 
 
-def conic_from_ellipse(center: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """Conic of the ellipse ``(p − c)ᵀ A (p − c) = 1`` (A: 2×2 symmetric positive)."""
-    c = np.asarray(center, dtype=float)
-    Ac = A @ c
-    C = np.empty((3, 3))
-    C[:2, :2] = A
-    C[:2, 2] = C[2, :2] = -Ac
-    C[2, 2] = c @ Ac - 1.0
-    return C
-
-
-def conic_from_moments(centroid: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Conic of a filled ellipse from its region centroid (2,) and covariance (2×2), both in
-    normalized coordinates: the boundary is ``(p − c)ᵀ (4Σ)⁻¹ (p − c) = 1``."""
-    centroid = require_finite(centroid, 'blob centroid')
-    cov = require_finite(cov, 'blob covariance')
-    if np.linalg.det(cov) <= 0:
-        raise MeasurementError('blob covariance is not positive definite')
-    return conic_from_ellipse(centroid, np.linalg.inv(4.0 * cov))
-
-
 def sphere_from_moments(centroid: np.ndarray, cov: np.ndarray) -> SphereMeasurement:
-    """:func:`sphere_from_conic` of :func:`conic_from_moments`."""
+    """:func:`sphere_from_conic` of :func:`~sphere_servo.core.conics.conic_from_moments`."""
     return sphere_from_conic(conic_from_moments(centroid, cov))
-
-
-def conic_pixels_to_normalized(C_px: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """A conic in pixel coordinates → the same conic in normalized coordinates (``KᵀCK``)."""
-    return K.T @ C_px @ K
 
 
 # --- marks ------------------------------------------------------------------------------

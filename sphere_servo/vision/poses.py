@@ -5,17 +5,15 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.conics import conic_bbox, conic_normalized_to_pixels, sphere_silhouette
 from sphere_servo.core.measurement import mark_visible
 from sphere_servo.core.targets import Target
-from sphere_servo.vision.renderer import conic_bbox
 
 
 def silhouette_px_conic(cMo: pin.SE3, target: Target, cam: CameraIntrinsics) -> np.ndarray:
     """Ground-truth conic of the sphere's image in pixels (DESIGN.md §2)."""
-    O = np.asarray(cMo.translation)
-    b = O / np.linalg.norm(O)
-    cos2 = 1 - (target.radius / np.linalg.norm(O)) ** 2
-    return cam.K_inv.T @ (np.outer(b, b) - cos2 * np.eye(3)) @ cam.K_inv
+    return conic_normalized_to_pixels(sphere_silhouette(cMo.translation, target.radius),
+                                      cam.px, cam.py, cam.u0, cam.v0)
 
 
 def incidence_deg(cMo: pin.SE3, oP: np.ndarray) -> float:

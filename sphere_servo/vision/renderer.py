@@ -21,12 +21,12 @@ Optional Gaussian noise (grey levels), Gaussian blur (pixels) and lighting gain.
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pinocchio as pin
 
-import cv2
-
 from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.conics import conic_bbox, conic_normalized_to_pixels, sphere_silhouette
 from sphere_servo.core.targets import CC, Target
 
 BACKGROUNDS = ('gradient', 'clutter', 'flat')
@@ -38,36 +38,6 @@ MISS, BODY, MARK1, MARK2, STICK, TIP = 0, 1, 2, 3, 4, 5
 _N_SUB = 16
 _SUB_X = (np.arange(_N_SUB) + 0.5) / _N_SUB - 0.5
 _SUB_Y = ((np.arange(_N_SUB) * 5) % _N_SUB + 0.5) / _N_SUB - 0.5
-
-
-def ball_silhouette(c: np.ndarray, rad: float) -> np.ndarray:
-    """Conic (normalized image coordinates) of the silhouette of a ball of radius ``rad``
-    centred at ``c`` (camera frame, in front of the camera): ``b bᵀ − cos²θ I`` with
-    ``b = c/‖c‖``, ``sin θ = rad/‖c‖`` (DESIGN.md §2)."""
-    dist = float(np.linalg.norm(c))
-    b = np.asarray(c, float) / dist
-    return np.outer(b, b) - (1.0 - (rad / dist) ** 2) * np.eye(3)
-
-
-def conic_bbox(C: np.ndarray) -> tuple[float, float, float, float] | None:
-    """Axis-aligned bounding box ``(x_min, x_max, y_min, y_max)`` of the ellipse
-    ``x̄ᵀ C x̄ = 0`` (3×3, any coordinates), from its vertical and horizontal tangent lines
-    ``lᵀ C⁻¹ l = 0`` with ``l = (1, 0, −x)`` and ``(0, 1, −y)``. ``None`` if the conic is not
-    a real bounded ellipse."""
-    try:
-        D = np.linalg.inv(C)
-    except np.linalg.LinAlgError:
-        return None
-    out = []
-    for i in (0, 1):
-        # D_ii − 2 x D_i2 + x² D_22 = 0
-        a, b, c = D[2, 2], -2.0 * D[i, 2], D[i, i]
-        disc = b * b - 4 * a * c
-        if abs(a) < 1e-300 or disc < 0:
-            return None
-        s = np.sqrt(disc)
-        out += sorted(((-b - s) / (2 * a), (-b + s) / (2 * a)))
-    return tuple(out)
 
 
 def _make_background(kind, width: int, height: int, rng: np.random.Generator) -> np.ndarray:
@@ -271,7 +241,7 @@ class Renderer:
         for c, rad in balls:
             if c[2] <= rad * 1.0001:
                 return slice(None), slice(None)
-            box = conic_bbox(ball_silhouette(c, rad))
+            box = conic_bbox(sphere_silhouette(c, rad))
             if box is None:
                 return slice(None), slice(None)
             boxes.append(box)
@@ -348,8 +318,9 @@ class Renderer:
                 if c[2] + rad <= 0:
                     continue          # entirely behind the camera
                 return full
-            Kinv = self.camera.K_inv
-            bb = conic_bbox(Kinv.T @ ball_silhouette(c, rad) @ Kinv)
+            cam = self.camera
+            bb = conic_bbox(conic_normalized_to_pixels(sphere_silhouette(c, rad), cam.px,
+                                                       cam.py, cam.u0, cam.v0))
             if bb is None:
                 return full
             boxes.append(bb)
