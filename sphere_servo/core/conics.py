@@ -219,7 +219,7 @@ def conic_bbox(C: Conic) -> tuple[float, float, float, float] | None:
 
 # --- pixels ↔ normalized --------------------------------------------------------------
 def _unit(n00, n01, n02, n11, n12, n22) -> Conic:
-    """The symmetric conic of these entries, scaled to unit Frobenius norm."""
+    """Build the symmetric conic of these entries, scaled to unit Frobenius norm."""
     nrm = math.sqrt(n00 * n00 + n11 * n11 + n22 * n22
                     + 2.0 * (n01 * n01 + n02 * n02 + n12 * n12))
     return np.array([[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]]) / nrm

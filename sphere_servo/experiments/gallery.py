@@ -1,4 +1,5 @@
-"""Gallery: ray-cast frames with the detection drawn on top, as PNGs.
+"""
+Gallery: ray-cast frames with the detection drawn on top, as PNGs.
 
 ``python -m sphere_servo.experiments.gallery [--out DIR]`` (``make gallery``) writes special, CC,
 balloon, border-cut, noisy and cluttered frames to ``docs/gallery/`` by default. Drawn on

@@ -1,4 +1,5 @@
-"""Observers ``cMo -> Observation`` for the paper runner and the Monte Carlo study (no ROS).
+"""
+Observers ``cMo -> Observation`` for the paper runner and the Monte Carlo study (no ROS).
 
 - :func:`exact_observer`  analytic image of the target (sphere *or* ellipsoid) with, on
   request, the controller's wrong intrinsics (calibration error) and Gaussian pixel noise
@@ -48,7 +49,8 @@ def _ellipse_points(C_px: np.ndarray, n: int) -> np.ndarray:
 def exact_observer(target: Target, camera: CameraIntrinsics | None = None,
                    camera_ctrl: CameraIntrinsics | None = None, pixel_noise: float = 0.0,
                    seed: int = 0, contour_points: int = 64):
-    """``cMo -> Observation`` from the analytic image.
+    """
+    ``cMo -> Observation`` from the analytic image.
 
     camera       the true intrinsics (default :class:`CameraIntrinsics`).
     camera_ctrl  the intrinsics the controller believes (default: the true ones).
@@ -97,8 +99,12 @@ def exact_observer(target: Target, camera: CameraIntrinsics | None = None,
 def image_observer(target: Target, camera: CameraIntrinsics | None = None,
                    camera_ctrl: CameraIntrinsics | None = None, noise_sigma: float = 0.0,
                    seed: int = 0):
-    """``cMo -> Observation``: render with the true ``camera`` (grey-level noise
-    ``noise_sigma``, seeded), detect with ``camera_ctrl`` (default: the true one)."""
+    """
+    Build the observer ``cMo -> Observation`` of the real vision pipeline.
+
+    Render with the true ``camera`` (grey-level noise ``noise_sigma``, seeded), detect with
+    ``camera_ctrl`` (default: the true one).
+    """
     from sphere_servo.vision.detector import Detector
     from sphere_servo.vision.renderer import Renderer
     cam = camera or CameraIntrinsics()

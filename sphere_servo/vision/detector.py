@@ -68,7 +68,7 @@ class Detection:
 
     @classmethod
     def missed(cls, why: NotDetected, marks: dict) -> 'Detection':
-        """The detection of an image without a usable target."""
+        """Build the detection of an image without a usable target."""
         return cls(False, str(why), marks=marks, not_detected=why)
 
     def to_observation(self, kind: str = SPECIAL) -> Observation:

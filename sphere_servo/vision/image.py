@@ -47,9 +47,9 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     if step < row:
         raise ValueError(f'step {step} is smaller than a row of {width} {encoding} pixels '
                          f'({row} bytes)')
-    buf = np.frombuffer(bytes(data) if not isinstance(data, (bytes, bytearray, memoryview,
-                                                            np.ndarray)) else data,
-                        dtype=np.uint8)
+    if not isinstance(data, (bytes, bytearray, memoryview, np.ndarray)):
+        data = bytes(data)         # e.g. rclpy's array.array or a list of ints
+    buf = np.frombuffer(data, dtype=np.uint8)
     if buf.size != step * height:
         raise ValueError(f'image data has {buf.size} bytes, but step·height = '
                          f'{step}·{height} = {step * height}')

@@ -52,7 +52,7 @@ class Mark:
 
     @property
     def q(self) -> np.ndarray:
-        """Unit vector of the mark's centre (camera frame)."""
+        """Return the unit vector of the mark's centre (camera frame)."""
         if not self.visible or self.xy_normalized is None:
             raise MeasurementError(f'mark {self.name} is not visible')
         return unit_ray(self.xy_normalized)
@@ -353,7 +353,7 @@ class MarkFinder:
         return P[:2] / P[2]
 
     def _fit_rim(self, m, X, k, rho, nn, cos_i, s_nt, rim) -> np.ndarray | None:
-        """Unit normal m of the cap's centre from its rim pixels (see :meth:`cap_centre`)."""
+        """Fit the unit normal m at the cap's centre to its rim pixels (:meth:`cap_centre`)."""
         if np.count_nonzero(rim) < 8:
             return None
         ir = 1.0 / nn[rim]
