@@ -21,6 +21,8 @@ from rosbags.interfaces import Connection, Qos, QosTime
 from rosbags.typesys import get_typestore, Stores
 import yaml
 
+from sphere_servo.vision.image import image_from_buffer, LAYOUTS
+
 __all__ = [
     'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'select_connections',
     'summary', 'format_summary', 'iter_raw', 'image_to_array', 'iter_images', 'typestore',
@@ -242,27 +244,20 @@ def iter_raw(reader: AnyReader, connections: list[Connection] | None = None,
         yield conn, ts, bytes(raw)
 
 
-_CHANNELS = {'rgb8': (3, np.uint8), 'bgr8': (3, np.uint8), 'rgba8': (4, np.uint8),
-             'bgra8': (4, np.uint8), 'mono8': (1, np.uint8), '8UC1': (1, np.uint8),
-             '8UC3': (3, np.uint8), 'mono16': (1, np.uint16), '16UC1': (1, np.uint16),
-             '32FC1': (1, np.float32)}
-
-
 def image_to_array(msg) -> np.ndarray:
-    """A deserialized sensor_msgs/Image (rosbags' dataclass) as an HxWxC (HxW for one
-    channel) numpy array; honours ``step`` padding and ``is_bigendian``."""
-    if msg.encoding not in _CHANNELS:
-        raise BagError(f'unsupported image encoding {msg.encoding!r}')
-    ch, dtype = _CHANNELS[msg.encoding]
-    dt = np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<')
-    row = msg.width * ch * dt.itemsize
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if msg.step < row or data.size < msg.step * msg.height:
-        raise BagError(f'image data too short for {msg.width}x{msg.height} {msg.encoding}')
-    rows = data[:msg.step * msg.height].reshape(msg.height, msg.step)[:, :row]
-    arr = np.ascontiguousarray(rows).view(dt).astype(dtype, copy=False)
-    return arr.reshape(msg.height, msg.width) if ch == 1 else \
-        arr.reshape(msg.height, msg.width, ch)
+    """
+    Decode a deserialized sensor_msgs/Image (rosbags' dataclass) into a numpy array.
+
+    HxWxC (HxW for one channel), C-contiguous; honours ``step`` padding and
+    ``is_bigendian``. Raises :class:`BagError` on an encoding it cannot decode or a buffer
+    whose size disagrees with ``step`` and ``height``.
+    """
+    try:
+        return np.ascontiguousarray(image_from_buffer(
+            msg.height, msg.width, msg.step, msg.encoding, msg.data,
+            is_bigendian=bool(msg.is_bigendian), encodings=LAYOUTS))
+    except ValueError as exc:
+        raise BagError(str(exc)) from None
 
 
 def iter_images(path: str | Path, topic: str = '/camera/image_raw',

@@ -1,28 +1,32 @@
-"""From image measurements to the paper's geometric quantities (no ROS). DESIGN.md §2.
+"""
+From image measurements to the paper's geometric quantities (no ROS). DESIGN.md §2.
 
 Inputs are in *normalized* image coordinates (``x̄ = K⁻¹ (u, v, 1)``); unit vectors
-``q = x̄/‖x̄‖`` are the spherical projections (camera optical frame, z forward).
+``q = x̄/‖x̄‖`` are the spherical projections (camera optical frame, z forward). The conic
+algebra itself (fits, ellipses, blob moments → conic, silhouettes) is
+:mod:`sphere_servo.core.conics`.
 
 - :func:`sphere_from_conic`   conic C of the sphere's image → ``b``, ``r_δ``, ``s_n,t = b/r_δ``
-- :func:`conic_from_moments`  blob centroid + covariance → the ellipse's conic
+- :func:`sphere_from_moments` the same from a blob's centroid and covariance
 - :func:`depth_ratio`         ``‖P‖/r`` of a surface mark, eq. (11)–(12), σ = −1
 - :func:`cRo_special`, :func:`cRo_cc`   partial pose ``ᶜR_o``, eqs. (8)–(14) and the CC form
 - :func:`observe`             exact :class:`Observation` of a target from a pose (ground truth)
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from functools import cached_property
+import math
 
 import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core import linalg
-from sphere_servo.core.geometry import GeometryError, normalize, require_finite
-from sphere_servo.core.targets import CC, SPECIAL, Target, mark_names
+# conic_from_ellipse: re-exported, its callers knew it from here
+from sphere_servo.core.conics import conic_from_ellipse, conic_from_moments  # noqa: F401
+from sphere_servo.core.geometry import GeometryError, normalize
+from sphere_servo.core.targets import CC, mark_names, SPECIAL, Target
 from sphere_servo.core.types import Mat3, Vec3
-
 
 
 class MeasurementError(GeometryError):
@@ -31,7 +35,8 @@ class MeasurementError(GeometryError):
 
 @dataclass(frozen=True)
 class SphereMeasurement:
-    """The sphere's spherical-projection quantities.
+    """
+    The sphere's spherical-projection quantities.
 
     b          (3,) unit vector towards the centre O (dome-hat summit), camera frame.
     r_delta    ``r_δ = r/‖O‖ = sin θ`` ∈ (0, 1).
@@ -51,7 +56,8 @@ class SphereMeasurement:
 
 @dataclass(frozen=True)
 class Observation:
-    """Everything the features need from one image.
+    """
+    Everything the features need from one image.
 
     sphere   the sphere measurement.
     q        unit vectors of the marks (camera frame), by name ('P1', 'P2' or 'P3').
@@ -70,7 +76,8 @@ class Observation:
 
 # --- sphere ------------------------------------------------------------------------------
 def sphere_from_conic(C: np.ndarray) -> SphereMeasurement:
-    """Sphere quantities from the conic ``x̄ᵀ C x̄ = 0`` of its image (normalized coords).
+    """
+    Sphere quantities from the conic ``x̄ᵀ C x̄ = 0`` of its image (normalized coords).
 
     ``C ∝ b bᵀ − cos²θ I₃`` for any scale and sign (DESIGN.md §2): flip the sign so exactly
     one eigenvalue is positive; ``b`` = its eigenvector (``b_z > 0``),
@@ -107,41 +114,18 @@ def sphere_from_conic(C: np.ndarray) -> SphereMeasurement:
     return SphereMeasurement(b=b, r_delta=r_delta, quality=quality)
 
 
-def conic_from_ellipse(center: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """Conic of the ellipse ``(p − c)ᵀ A (p − c) = 1`` (A: 2×2 symmetric positive)."""
-    c = np.asarray(center, dtype=float)
-    Ac = A @ c
-    C = np.empty((3, 3))
-    C[:2, :2] = A
-    C[:2, 2] = C[2, :2] = -Ac
-    C[2, 2] = c @ Ac - 1.0
-    return C
-
-
-def conic_from_moments(centroid: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Conic of a filled ellipse from its region centroid (2,) and covariance (2×2), both in
-    normalized coordinates: the boundary is ``(p − c)ᵀ (4Σ)⁻¹ (p − c) = 1``."""
-    centroid = require_finite(centroid, 'blob centroid')
-    cov = require_finite(cov, 'blob covariance')
-    if np.linalg.det(cov) <= 0:
-        raise MeasurementError('blob covariance is not positive definite')
-    return conic_from_ellipse(centroid, np.linalg.inv(4.0 * cov))
-
-
 def sphere_from_moments(centroid: np.ndarray, cov: np.ndarray) -> SphereMeasurement:
-    """:func:`sphere_from_conic` of :func:`conic_from_moments`."""
+    """:func:`sphere_from_conic` of :func:`~sphere_servo.core.conics.conic_from_moments`."""
     return sphere_from_conic(conic_from_moments(centroid, cov))
-
-
-def conic_pixels_to_normalized(C_px: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """A conic in pixel coordinates → the same conic in normalized coordinates (``KᵀCK``)."""
-    return K.T @ C_px @ K
 
 
 # --- marks ------------------------------------------------------------------------------
 def unit_ray(xy: np.ndarray) -> Vec3:
-    """Normalized image point (x, y) → unit vector ``q = x̄/‖x̄‖``. Raises on NaN/inf (a
-    point at infinity)."""
+    """
+    Map a normalized image point (x, y) to its unit vector ``q = x̄/‖x̄‖``.
+
+    Raises :class:`MeasurementError` on NaN/inf (a point at infinity).
+    """
     x, y = float(xy[0]), float(xy[1])
     n = math.sqrt(x * x + y * y + 1.0)
     if not math.isfinite(n):
@@ -150,9 +134,12 @@ def unit_ray(xy: np.ndarray) -> Vec3:
 
 
 def depth_ratio(sphere: SphereMeasurement, q: Vec3) -> float:
-    """``‖P‖/r`` of a surface point seen along ``q`` (eq. 11–12, σ = −1, the visible side):
-    ``(cos φ − √(r_δ² − sin² φ)) / r_δ`` with ``cos φ = bᵀq``. The root's argument is clamped
-    at 0 (a mark measured just outside the silhouette, e.g. by noise)."""
+    """
+    Compute ``‖P‖/r`` of a surface point seen along ``q`` (eq. 11–12, σ = −1).
+
+    ``(cos φ − √(r_δ² − sin² φ)) / r_δ`` with ``cos φ = bᵀq``: the visible side. The root's
+    argument is clamped at 0 (a mark measured just outside the silhouette, e.g. by noise).
+    """
     cphi = float(sphere.b @ q)
     if cphi <= 0:
         raise MeasurementError('mark direction points away from the sphere')
@@ -166,8 +153,12 @@ def P_over_r(sphere: SphereMeasurement, q: Vec3) -> Vec3:
 
 
 def P3_over_r(sphere: SphereMeasurement, P1r: Vec3, q3: Vec3) -> Vec3:
-    """CC tip: P3 lies on the tangent plane at P1, so with ``d = s_n,t − P1/r``,
-    ``‖P3‖/r = (P1/r · d)/(q3 · d)`` (DESIGN.md §2)."""
+    """
+    Compute ``P3/r`` of the CC tip seen along ``q3``.
+
+    P3 lies on the tangent plane at P1, so with ``d = s_n,t − P1/r``,
+    ``‖P3‖/r = (P1/r · d)/(q3 · d)`` (DESIGN.md §2).
+    """
     d = sphere.s_nt - P1r
     den = float(q3 @ d)
     if abs(den) < 1e-12:
@@ -186,8 +177,12 @@ def _unit(x: float, y: float, z: float, what: str) -> tuple[float, float, float]
 
 
 def _rot_from_r3_r2(r3: Vec3, a: Vec3) -> Mat3:
-    """``[r1 r2 r3]`` with ``r3 = n(r3)``, ``r2 = n(a − (aᵀr3) r3)``, ``r1 = r2 × r3`` (scalar
-    arithmetic: this runs in every control step)."""
+    """
+    Build the rotation ``[r1 r2 r3]`` of a third axis and a second direction.
+
+    ``r3 = n(r3)``, ``r2 = n(a − (aᵀr3) r3)``, ``r1 = r2 × r3`` (scalar arithmetic: this
+    runs in every control step).
+    """
     x, y, z = _unit(*r3.tolist(), 'r3')
     ax, ay, az = a.tolist()
     d = ax * x + ay * y + az * z
@@ -196,18 +191,26 @@ def _rot_from_r3_r2(r3: Vec3, a: Vec3) -> Mat3:
 
 
 def cRo_special(sphere: SphereMeasurement, q1: Vec3, q2: Vec3) -> Mat3:
-    """Partial pose of the special sphere, eqs. (8)–(14): ``r3 = n(s_n,t − P1/r)``,
-    ``a = P2/r − P1/r``, ``r2 = n(a − (aᵀr3) r3)``, ``r1 = r2 × r3``, ``ᶜR_o = [r1 r2 r3]``.
+    """
+    Partial pose of the special sphere, eqs. (8)–(14).
+
+    ``r3 = n(s_n,t − P1/r)``, ``a = P2/r − P1/r``, ``r2 = n(a − (aᵀr3) r3)``,
+    ``r1 = r2 × r3``, ``ᶜR_o = [r1 r2 r3]``.
 
     This *measured* frame is the rotation of a frame attached to the target (not the
-    target's model frame); ``ᶜ*R_c = ᶜ*R_o ᶜR_oᵀ`` is independent of that choice."""
+    target's model frame); ``ᶜ*R_c = ᶜ*R_o ᶜR_oᵀ`` is independent of that choice.
+    """
     P1r = P_over_r(sphere, q1)
     return _rot_from_r3_r2(sphere.s_nt - P1r, P_over_r(sphere, q2) - P1r)
 
 
 def cRo_cc(sphere: SphereMeasurement, q1: Vec3, q3: Vec3) -> Mat3:
-    """Partial pose of the CC target: ``r3 = n(s_n,t − P1/r)``, ``r2 = n(P3/r − P1/r)``
-    (orthogonalised against r3), ``r1 = r2 × r3``."""
+    """
+    Partial pose of the CC target.
+
+    ``r3 = n(s_n,t − P1/r)``, ``r2 = n(P3/r − P1/r)`` (orthogonalised against r3),
+    ``r1 = r2 × r3``.
+    """
     P1r = P_over_r(sphere, q1)
     return _rot_from_r3_r2(sphere.s_nt - P1r, P3_over_r(sphere, P1r, q3) - P1r)
 
@@ -224,17 +227,23 @@ def cRo_measured(obs: Observation) -> Mat3:
 
 
 def model_cRo_offset(target: Target) -> Mat3:
-    """``ᵒR_m``: the rotation of the measured frame (built as in :func:`cRo_special` /
-    :func:`cRo_cc` from the model marks) in the target's model frame, so that the measured
-    ``ᶜR_o`` equals ``ᶜR_o(model) · ᵒR_m``."""
+    """
+    Compute ``ᵒR_m``, the rotation of the measured frame in the target's model frame.
+
+    The measured frame is built as in :func:`cRo_special` / :func:`cRo_cc` from the model
+    marks, so that the measured ``ᶜR_o`` equals ``ᶜR_o(model) · ᵒR_m``.
+    """
     r3 = -target.oP1 / np.linalg.norm(target.oP1)
     return _rot_from_r3_r2(r3, target.oP2 - target.oP1)
 
 
 # --- ground truth ------------------------------------------------------------------------
 def mark_visible(cMo: pin.SE3, target: Target, name: str) -> bool:
-    """Whether mark ``name`` faces the camera (surface mark) or is not hidden by the sphere
-    (CC tip), ignoring the image borders."""
+    """
+    Tell whether mark ``name`` can be seen from ``cMo``, ignoring the image borders.
+
+    A surface mark must face the camera; the CC tip must not be hidden by the sphere.
+    """
     oP = target.marks()[name]
     cP = cMo.act(oP)
     if cP[2] <= 0:
@@ -254,10 +263,12 @@ def mark_visible(cMo: pin.SE3, target: Target, name: str) -> bool:
 
 
 def observe(cMo: pin.SE3, target: Target, require_visible: bool = True) -> Observation:
-    """Exact observation of a *spherical* target seen from pose ``cMo`` (target in camera).
+    """
+    Exact observation of a *spherical* target seen from pose ``cMo`` (target in camera).
 
     Raises :class:`MeasurementError` if the sphere is not entirely in front of the camera or
-    (with ``require_visible``) a mark is hidden."""
+    (with ``require_visible``) a mark is hidden.
+    """
     if not target.is_sphere:
         raise MeasurementError('exact observation is defined for spherical targets only')
     cO = np.asarray(cMo.translation, dtype=float)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import time
 
-import cv2
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -30,7 +29,9 @@ from sphere_servo.core.targets import make_target
 from sphere_servo.ros.conversions import image_from_array
 from sphere_servo.ros.params import Param, declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import measurement_msg
-from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
+from sphere_servo.vision.detector import Detector
+from sphere_servo.vision.draw import draw_detection
+from sphere_servo.vision.image import image_from_buffer
 
 PARAMS = {
     'target_kind': Param('special', 'target whose colours and marks to look for',
@@ -40,21 +41,6 @@ PARAMS = {
                               read_only=True),
     'publish_overlay': Param(False, 'publish detector/overlay (costs a copy and a draw)'),
 }
-
-
-def draw_detection(rgb: np.ndarray, det: Detection) -> np.ndarray:
-    """A copy of ``rgb`` with the fitted ellipse (green) and the marks (crosses) drawn."""
-    out = np.ascontiguousarray(rgb.copy())
-    if det.found and det.ellipse_px is not None:
-        (uc, vc), (a1, a2), ang = det.ellipse_px
-        cv2.ellipse(out, ((uc, vc), (a1, a2), ang), (0, 255, 0), 1, cv2.LINE_AA)
-    for name, mark in det.marks.items():
-        if mark.visible and mark.uv_px is not None:
-            u, v = (int(round(c)) for c in mark.uv_px)
-            cv2.drawMarker(out, (u, v), (255, 255, 0), cv2.MARKER_CROSS, 12, 1)
-            cv2.putText(out, name, (u + 6, v - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                        (255, 255, 0), 1, cv2.LINE_AA)
-    return out
 
 
 class DetectorNode(Node):
