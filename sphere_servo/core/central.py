@@ -83,15 +83,15 @@ def first_fold(coeffs) -> float:
 
 
 @lru_cache(maxsize=64)
-def _table(coeffs: tuple, top: float) -> tuple[np.ndarray, np.ndarray]:
+def _table(coeffs: tuple, top: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    Tabulate ``x`` and ``f(x)`` on ``[0, top]``.
+    Tabulate ``x``, ``f(x)`` and ``f'(x)`` on ``[0, top]``.
 
     Uniform up to 1, geometric beyond: the radius of a wide field spans decades.
     """
     xg = (np.linspace(0.0, top, 257) if top <= 2.0 else
           np.concatenate([np.linspace(0.0, 1.0, 129)[:-1], np.geomspace(1.0, top, 129)]))
-    return xg, odd_poly(coeffs, xg)[0]
+    return (xg, *odd_poly(coeffs, xg))
 
 
 def solve_odd_poly(coeffs, t: np.ndarray, hi: float) -> tuple[np.ndarray, np.ndarray]:
@@ -101,8 +101,9 @@ def solve_odd_poly(coeffs, t: np.ndarray, hi: float) -> tuple[np.ndarray, np.nda
     ``hi`` is at most the first fold (``inf`` if none). Returns ``(x, ok)``; ``ok`` is False
     where ``t`` is not finite, negative, or ≥ ``f(hi)`` (no solution in the increasing
     branch). Initial guess from a table of ``f`` on ``[0, hi]`` (``[0, 2ᵏ]`` with
-    ``f(2ᵏ) ≥ max t`` if ``hi`` is infinite), then Newton steps kept inside the table interval
-    that brackets the root (bisection when a step leaves it), on the points not yet converged.
+    ``f(2ᵏ) ≥ max t`` if ``hi`` is infinite) by cubic Hermite interpolation of the inverse,
+    then Newton steps kept inside the table interval that brackets the root (bisection when a
+    step leaves it), on the points not yet converged.
     """
     t = np.asarray(t, dtype=float)
     ok = np.isfinite(t) & (t >= 0)
@@ -116,28 +117,37 @@ def solve_odd_poly(coeffs, t: np.ndarray, hi: float) -> tuple[np.ndarray, np.nda
         top = 2.0 ** math.ceil(math.log2(max(1.0, tmax)))
         while odd_poly(coeffs, np.array([top]))[0][0] < tmax:
             top *= 2.0
-    xg, fg = _table(coeffs, top)
+    xg, fg, dg = _table(coeffs, top)
     if math.isfinite(hi):
         ok &= t < fg[-1]
         t = np.where(ok, t, 0.0)
     j = np.clip(np.searchsorted(fg, t, side='right'), 1, len(xg) - 1)
     lo, up = xg[j - 1], xg[j]
-    x = np.interp(t, fg, xg)
-    live = np.arange(len(t))
+    # x(t) on [f_j-1, f_j] by cubic Hermite (slopes 1/f'), clipped into the bracket
+    h = fg[j] - fg[j - 1]
+    s = (t - fg[j - 1]) / h
+    m0, m1 = h / dg[j - 1], h / np.maximum(dg[j], 1e-300)
+    x = (lo * (1 + 2 * s) * (1 - s) ** 2 + m0 * s * (1 - s) ** 2
+         + up * s * s * (3 - 2 * s) + m1 * s * s * (s - 1))
+    x = np.minimum(np.maximum(x, lo), up)
+    live = None                                    # all points, until some converge
     for _ in range(60):
-        xa, ta = x[live], t[live]
+        xa, ta, la, ua = (x, t, lo, up) if live is None else (x[live], t[live], lo[live],
+                                                              up[live])
         f, df = odd_poly(coeffs, xa)
         r = f - ta
-        la = np.where(r < 0, xa, lo[live])
-        ua = np.where(r > 0, xa, up[live])
-        with np.errstate(divide='ignore', invalid='ignore'):
-            xn = xa - r / df
-        out = ~((xn >= la) & (xn <= ua)) | ~(df > 0)
-        xn = np.where(out, 0.5 * (la + ua), xn)
+        la = np.where(r < 0, xa, la)
+        ua = np.where(r > 0, xa, ua)
+        xn = xa - np.divide(r, df, out=np.full_like(r, np.inf), where=df > 0)
+        xn = np.where((xn >= la) & (xn <= ua), xn, 0.5 * (la + ua))
         done = ((np.abs(xn - xa) <= 4 * _EPS * xa)     # converged, or f(x) = t to
                 | (np.abs(r) <= 8 * _EPS * ta))        # rounding (f' ≈ 0 at a fold)
-        x[live], lo[live], up[live] = xn, la, ua
-        live = live[~done]
+        if live is None:
+            x, lo, up = xn, la, ua
+            live = np.flatnonzero(~done)
+        else:
+            x[live], lo[live], up[live] = xn, la, ua
+            live = live[~done]
         if not live.size:
             break
     else:
