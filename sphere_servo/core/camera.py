@@ -12,15 +12,19 @@ The controller may be given *wrong* intrinsics while the renderer keeps the true
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
+import math
 
 import numpy as np
 
+from sphere_servo.core.central import (CentralCamera, det2, first_fold, Lifted, odd_poly,
+                                       radtan, undistort_radtan)
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2
 
 
 @dataclass(frozen=True)
-class CameraIntrinsics:
+class CameraIntrinsics(CentralCamera):
     """Intrinsics of a pinhole camera; pixels, with (0, 0) the centre of the top-left pixel."""
 
     px: float = 600.0
@@ -87,6 +91,8 @@ class CameraIntrinsics:
         cP = np.asarray(cP, dtype=float).reshape(-1, 3)
         if np.any(cP[:, 2] <= 1e-12):
             raise GeometryError('cannot project a point at or behind the camera centre')
+        if self.dist != self._NO_DISTORTION:  # refuse a ray beyond the distortion's fold
+            self._refuse_outside(cP, self.valid(cP))
         return self.normalized_to_pixel(cP[:, :2] / cP[:, 2:3])
 
     def in_image(self, uv: Points2, margin: float = 0.0) -> np.ndarray:
@@ -139,3 +145,56 @@ class CameraIntrinsics:
             dist = dist + (0.0,) * (5 - len(dist))
         return cls(px=k[0], py=k[4], u0=k[2], v0=k[5], width=int(width), height=int(height),
                    dist=dist[:5])
+
+    # --- the central-camera interface (core/central.py): lift, project, Jacobians, field --
+    _NO_DISTORTION = (0.0,) * 5
+
+    @cached_property
+    def _fold(self) -> float:
+        """Return the undistorted radius where plumb_bob's radial part stops increasing."""
+        k1, k2, _, _, k3 = self.dist
+        return first_fold((k1, k2, k3))
+
+    @property
+    def _has_tangential(self) -> bool:
+        return self.dist[2] != 0.0 or self.dist[3] != 0.0
+
+    @property
+    def max_angle(self) -> float:
+        """Return the half-angle of the valid field (rad): 90°, less if the distortion folds."""
+        return math.atan(self._fold)
+
+    def _radial_limit(self) -> tuple[float, bool]:
+        if math.isinf(self._fold):
+            return math.inf, False
+        k1, k2, _, _, k3 = self.dist
+        return float(odd_poly((k1, k2, k3), np.array([self._fold]))[0][0]), True
+
+    def _distort_rays(self, P: np.ndarray, jacobian: bool):
+        """Distort ``x̄ = (X/Z, Y/Z)`` by plumb_bob; valid for ``Z > 0`` inside the fold."""
+        Z = P[:, 2]
+        ok = Z > 1e-12 * np.sqrt(np.einsum('ij,ij->i', P, P))
+        iz = 1.0 / np.where(ok, Z, 1.0)
+        m = P[:, :2] * iz[:, None]
+        if self.has_distortion:
+            md, D = radtan(m, *self.dist)
+            ok &= (np.einsum('ij,ij->i', m, m) < self._fold ** 2) & (det2(D) > 0)
+        else:
+            md, D = m, None
+        if not jacobian:
+            return md, ok, None
+        J = np.zeros((len(P), 2, 3))                 # ∂x̄/∂P
+        J[:, 0, 0] = J[:, 1, 1] = iz
+        J[:, :, 2] = -m * iz[:, None]
+        return md, ok, (J if D is None else D @ J)
+
+    def _undistort(self, md: np.ndarray) -> Lifted:
+        if self.has_distortion:
+            m, ok = undistort_radtan(md, self.dist, self._fold)
+        else:
+            m, ok = md, np.isfinite(md).all(axis=1)
+        q = np.empty((len(m), 3))
+        q[:, :2] = m
+        q[:, 2] = 1.0
+        q /= np.sqrt(np.einsum('ij,ij->i', q, q))[:, None]
+        return Lifted(q, ok)
