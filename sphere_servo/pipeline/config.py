@@ -1,5 +1,8 @@
-"""Config files (no ROS): find a config by name, load it with its includes, read a node's
-parameters. Shared by the launcher, the bag tools and the experiments.
+"""
+Config files (no ROS).
+
+Find a config by name, load it with its includes, read a node's parameters. Shared by the
+launcher, the bag tools and the experiments.
 
 A config is a ROS 2 parameters file (``<node>: ros__parameters: …``) plus a ``launch:``
 section read by the launcher (``include``, ``nodes``, ``teach``, ``timeout``).
@@ -28,7 +31,7 @@ def merge(base: dict, over: dict) -> dict:
 
 
 def find_config(name: str) -> Path:
-    """A config path from a path or a name (``special_sphere`` or ``special_sphere.yaml``)."""
+    """Find a config by path or by name (``special_sphere`` or ``special_sphere.yaml``)."""
     p = Path(name)
     if p.is_file():
         return p
@@ -42,7 +45,7 @@ def find_config(name: str) -> Path:
 
 
 def load_config(path: Path, _seen=()) -> dict:
-    """The merged config of ``path`` and its ``launch.include`` files."""
+    """Load the config ``path``, merged with its ``launch.include`` files."""
     path = Path(path).resolve()
     if path in _seen:
         raise ConfigError(f'config include cycle at {path}')
@@ -61,17 +64,18 @@ def load_config(path: Path, _seen=()) -> dict:
 
 
 def node_params(config: dict, node: str) -> dict:
-    """The ``ros__parameters`` of ``node`` in a merged config ({} if none)."""
+    """Return the ``ros__parameters`` of ``node`` in a merged config ({} if none)."""
     return ((config.get(node) or {}).get('ros__parameters') or {})
 
 
 def package_prefix() -> Path | None:
-    """The install prefix of sphere_servo in the ament index (as ``ros2 run`` finds it), or
-    None when the package is not installed (no ament index, or not in it)."""
+    """
+    Return the install prefix of sphere_servo in the ament index (as ``ros2 run`` finds it).
+
+    None when the package is not installed (no ament index, or not in it).
+    """
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_prefix
         return Path(get_package_prefix('sphere_servo'))
     except (ImportError, PackageNotFoundError, OSError):  # OSError: no AMENT_PREFIX_PATH
         return None
-
-
