@@ -6,7 +6,10 @@ dataclass's table with a ``ParameterDescriptor`` (description, ranges) and retur
 validated dataclass; a refused value raises :class:`ParameterError` at start, and a later
 ``ros2 param set`` of a refused value is rejected by :func:`install_set_callback`.
 
-:func:`run` is the ``main()`` shape of ros2/demos' talker (jazzy), shared by the nodes.
+:func:`run` is ros2/demos' talker (jazzy) with one change: SIGINT and SIGTERM only set a stop
+flag that the spin loop checks. A ``KeyboardInterrupt`` raised asynchronously can land
+anywhere, also inside rclpy's ``take_message`` (Python called from C++), where pybind turns
+it into a ``RuntimeError`` and the node dies with exit code 1.
 """
 from __future__ import annotations
 
@@ -70,8 +73,23 @@ def install_set_callback(node, get, apply) -> None:
     node.add_on_set_parameters_callback(on_set)
 
 
-def _sigterm_as_interrupt(signum, frame):
-    raise KeyboardInterrupt
+class StopFlag:
+    """Set by SIGINT and SIGTERM; the spin loop ends when it is."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __call__(self, signum, frame) -> None:
+        """Record the request (a signal handler: nothing else, nothing raised)."""
+        self.requested = True
+
+    @classmethod
+    def install(cls) -> StopFlag:
+        """Return a flag that SIGINT and SIGTERM set from now on."""
+        flag = cls()
+        signal.signal(signal.SIGINT, flag)
+        signal.signal(signal.SIGTERM, flag)
+        return flag
 
 
 def run(node_factory, name: str, args=None) -> None:
@@ -79,13 +97,12 @@ def run(node_factory, name: str, args=None) -> None:
     Run a node until Ctrl-C, SIGTERM or an external shutdown.
 
     Then ``on_shutdown()`` (if the node has one: the servo's last word is a zero twist),
-    ``destroy_node()`` and ``rclpy.try_shutdown()``. rclpy's own SIGINT handler is disabled
-    (SIGTERM is mapped to the same path) so the context is still valid in
-    ``on_shutdown()``. A refused parameter ends the process with a one-line message and
-    exit code 2.
+    ``destroy_node()`` and ``rclpy.try_shutdown()``. rclpy's own signal handler is disabled
+    so the context is still valid in ``on_shutdown()``. A refused parameter ends the
+    process with a one-line message and exit code 2.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    stop = StopFlag.install()
     try:
         node = node_factory()
     except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
@@ -96,9 +113,9 @@ def run(node_factory, name: str, args=None) -> None:
     try:
         executor = rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)
-        while rclpy.ok():  # wake up regularly so a pending KeyboardInterrupt is raised
+        while rclpy.ok() and not stop.requested:  # the timeout bounds the reaction time
             executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         pass
     finally:
         on_exit = getattr(node, 'on_shutdown', None)
