@@ -80,9 +80,9 @@ def bench_lockstep_cycle(n: int) -> dict:
             t0 = time.perf_counter()
             sim._on_cmd(cmd)
             cycle.append(time.perf_counter() - t0)
-            cMo = sim.arm.cMo()
+            cMo = sim.core.arm.cMo()
             t0 = time.perf_counter()
-            sim.renderer.render(cMo)
+            sim.core.renderer.render(cMo)
             render.append(time.perf_counter() - t0)
             ex.spin_once(timeout_sec=0.0)  # deliver (outside the timed part)
     return _row('arm_sim lockstep cycle (integrate+render+publish 640x480)',

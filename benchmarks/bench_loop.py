@@ -85,7 +85,7 @@ def _run(rate: float, seconds: float) -> dict:
     env = dict(os.environ, ROS_DOMAIN_ID=str(1 + (os.getpid() * 13) % 100),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
     extra = {'servo': ['-p', 'start_enabled:=false']}
-    procs = {name: subprocess.Popen([sys.executable, '-m', f'sphere_servo.nodes.{name}',
+    procs = {name: subprocess.Popen([sys.executable, '-m', f'sphere_servo.ros.{name}',
                                      '--ros-args', *extra.get(name, [])],
                                     env=env, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)

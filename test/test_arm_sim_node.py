@@ -1,4 +1,5 @@
-"""The installed ``arm_sim`` executable as a process, driven from a test rclpy node.
+"""
+The installed ``arm_sim`` executable as a process, driven from a test rclpy node.
 
 Kinematic checks run in lockstep (one period per command), so they do not depend on the
 machine's speed; nothing here asserts on wall-clock time (timeouts only bound the waits).
@@ -6,20 +7,18 @@ machine's speed; nothing here asserts on wall-clock time (timeouts only bound th
 import hashlib
 import time
 
+from conftest import REPO, wait_for
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from conftest import REPO, wait_for
-
 pytest.importorskip('rclpy')
-from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402, I100
 from geometry_msgs.msg import PoseStamped, Twist  # noqa: E402
 from sensor_msgs.msg import Image, JointState  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-
 from sphere_servo.ros.conversions import se3_from_pose, twist_from_array  # noqa: E402
 from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 CONFIG = str(REPO / 'config' / 'arm_sim.yaml')
 DT = 1.0 / 30.0

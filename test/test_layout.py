@@ -34,9 +34,6 @@ ROS_MODULES = ('rclpy', 'rosidl_runtime_py', 'rcl_interfaces', 'builtin_interfac
                'tf2_msgs')
 INTERFACE_SUBMODULES = ('msg', 'srv', 'action')
 MAX_LINES = 500
-# files still to split (issue 12): each entry is removed by the change that splits it; an
-# entry that fits in MAX_LINES fails the test as a strict XPASS
-KNOWN_OVERSIZE = {'sphere_servo/bag/refeatures.py'}
 
 
 def _modules() -> dict[str, Path]:
@@ -197,9 +194,7 @@ def test_the_layer_check_can_fail(tmp_path):
 
 @pytest.mark.parametrize('path', sorted(PKG.rglob('*.py')), ids=lambda p: str(
     p.relative_to(REPO)))
-def test_source_files_are_at_most_500_lines(path, request):
-    if str(path.relative_to(REPO)) in KNOWN_OVERSIZE:
-        request.applymarker(pytest.mark.xfail(strict=True, reason='to split (issue 12)'))
+def test_source_files_are_at_most_500_lines(path):
     n = len(path.read_text().splitlines())
     assert n <= MAX_LINES, f'{path.relative_to(REPO)} has {n} lines (> {MAX_LINES}): split it'
 

@@ -1,0 +1,232 @@
+"""
+The arm simulator's logic without ROS: stepping, jumps, and what each step shows.
+
+:class:`ArmSimCore` wraps :class:`~sphere_servo.sim.arm.ArmModel` (kinematics, limits,
+watchdog) and the :class:`~sphere_servo.vision.renderer.Renderer`; each step or jump
+yields a :class:`SimFrame`, everything the node publishes for one image.
+
+Clock modes (``clock_mode``):
+
+- ``realtime``: :meth:`ArmSimCore.on_tick` (a wall timer at ``camera_rate``) advances the
+  simulation one period under the last command; a command only replaces that command.
+- ``lockstep``: each command advances the simulation exactly one period and yields exactly
+  one frame (an invalid command advances the clock with the arm held still, so a loop never
+  stalls). The first frame, and the one after a jump, is *re-published* unchanged (same
+  stamp) until the next command arrives (:attr:`ArmSimCore.waiting`), so a subscriber that
+  connects late still gets it.
+
+Jumps (the node's services): ``reset`` (start configuration, at rest, watchdog re-armed,
+sim time kept), ``go_start`` / ``go_desired`` (the IK of ``start_cMo`` / ``desired_cMo``,
+from the parameters as they are now), ``hold`` (drop the command). A jump lets one period
+pass, so the new image has a new stamp, which ends the reply.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.targets import make_target, Target
+from sphere_servo.core.types import Image
+from sphere_servo.pipeline.common import Level, Reply
+from sphere_servo.pipeline.params import ArmSimParams, ParameterError
+from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy, Status, StepInfo
+from sphere_servo.vision.renderer import Renderer
+
+START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
+LEVELS = {Status.OK: Level.OK, Status.SINGULARITY: Level.WARN,
+          Status.JOINT_LIMIT: Level.WARN, Status.TIMEOUT: Level.WARN}
+
+
+@dataclass(frozen=True)
+class SimFrame:
+    """
+    One image and what goes with it, at sim time ``t`` (s, from :data:`START_TIME`).
+
+    image        (H, W, 3) rgb8; black when it could not be rendered (``render_error``).
+    oMc          the camera optical frame in the target frame (ground truth).
+    q, qdot      joint positions and the applied velocities.
+    info         what the last step did (status, joints at a limit, σ_min, scale).
+    step_error   why the last step failed, the arm then held still ('' if it did not).
+    """
+
+    t: float
+    image: Image
+    oMc: pin.SE3
+    joint_names: tuple[str, ...]
+    q: np.ndarray
+    qdot: np.ndarray
+    info: StepInfo
+    render_error: str = ''
+    step_error: str = ''
+
+    @property
+    def stamp_ns(self) -> int:
+        """Return the stamp of every message of the frame."""
+        return int(round(self.t * 1e9))
+
+    @property
+    def level(self) -> Level:
+        """Return OK, or WARN at a limit, near a singularity, on a timeout."""
+        return LEVELS[self.info.status]
+
+    def status_values(self) -> dict[str, str]:
+        """Return the status values, key → text, in the published order."""
+        st = self.info
+        return {'joints': ','.join(st.joints), 'sigma_min': f'{st.sigma_min:.5f}',
+                'scale': f'{st.scale:.4f}', 'sim_time': f'{self.t:.6f}',
+                'detail': st.message}
+
+
+@dataclass(frozen=True)
+class Jump(Reply):
+    """The outcome of a service, and the frame at the new pose (if the arm jumped)."""
+
+    frame: SimFrame | None = None
+
+
+@dataclass(frozen=True)
+class CommandOutcome:
+    """A received twist: whether it was usable, and the frame it produced (lockstep)."""
+
+    valid: bool
+    frame: SimFrame | None = None
+
+
+def sim_camera(p: ArmSimParams) -> CameraIntrinsics:
+    """Return the simulated camera's true intrinsics."""
+    return CameraIntrinsics(px=p.camera_px, py=p.camera_py, u0=p.camera_u0, v0=p.camera_v0,
+                            width=p.camera_width, height=p.camera_height)
+
+
+def sim_target(p: ArmSimParams) -> Target:
+    """Return the simulated target (a balloon has its own semi-axes)."""
+    if p.target_kind == 'balloon':
+        return make_target('balloon', axes=tuple(p.target_axes))
+    return make_target(p.target_kind, p.target_radius)
+
+
+def _pose(xyz_rpy) -> pin.SE3:
+    return pose_from_xyz_rpy(xyz_rpy[:3], xyz_rpy[3:])
+
+
+class ArmSimCore:
+    """The ``arm_sim`` node's logic (see the module docstring)."""
+
+    def __init__(self, params: ArmSimParams):
+        """Build the arm, the camera and the renderer; ParameterError if a pose is out of reach."""
+        self.params = p = params
+        self.camera = sim_camera(p)
+        self.target = sim_target(p)
+        self.renderer = Renderer(self.camera, self.target)
+        self.dt = 1.0 / p.camera_rate
+        self.lockstep = p.clock_mode == 'lockstep'
+        self.arm = ArmModel(
+            urdf_path=p.urdf_path or None, tool0Mc=_pose(p.hand_eye), wMo=_pose(p.target_pose),
+            q0=p.start_joints, damping=p.damping, singular_threshold=p.singular_threshold,
+            singular_stop=p.singular_stop, velocity_scale=p.velocity_scale,
+            cmd_timeout=p.cmd_timeout)
+        q_start = self.named('start')  # raises if the IK fails: refused at start
+        self.named('desired')
+        self.arm.q_start = q_start
+        self.arm.reset()
+        self.waiting = self.lockstep  # re-publish the first frame until a command comes
+        self._step_error = ''
+
+    def named(self, which: str) -> np.ndarray:
+        """
+        Return the joint configuration of the 'start' or 'desired' pose, by IK.
+
+        From the current parameters; raises ParameterError if the IK does not converge.
+        """
+        p = self.params
+        if which == 'start' and p.start_mode == 'joints':
+            return np.asarray(p.start_joints, dtype=float)
+        cMo = p.desired_cMo if which == 'desired' else p.start_cMo
+        seed = p.start_joints if which == 'desired' else self.named('desired')
+        q, ok, err = self.arm.ik_for_cMo(_pose(cMo), seed)
+        if not ok:
+            raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '
+                                 f'(IK residual {err:.3g}); change it or target_pose')
+        return q
+
+    # --- command and time -----------------------------------------------------------
+    def on_command(self, v_c) -> CommandOutcome:
+        """Take a camera twist (6,); in lockstep, step one period and return its frame."""
+        v_c = np.asarray(v_c, dtype=float)
+        valid = bool(v_c.shape == (6,) and np.all(np.isfinite(v_c)))
+        if valid:
+            self.arm.command(v_c)
+        if not self.lockstep:
+            return CommandOutcome(valid)
+        self.waiting = False
+        if not valid:  # hold still for this period; the loop gets its image
+            self.arm.command(np.zeros(6))
+        return CommandOutcome(valid, self.advance())
+
+    def on_tick(self) -> SimFrame:
+        """Step one period under the last command (realtime) and return the frame."""
+        return self.advance()
+
+    def advance(self) -> SimFrame:
+        """Step one period; a step that fails holds the arm still (its error is reported)."""
+        self._step_error = ''
+        try:
+            self.arm.step(self.dt)
+        except Exception as e:  # noqa: BLE001 - never crash on a bad step; hold still
+            self._step_error = str(e)
+            self.arm.stop()
+        return self.frame()
+
+    @property
+    def republish_due(self) -> bool:
+        """Whether the last frame is to be re-published (lockstep, no command since)."""
+        return self.waiting
+
+    # --- output ---------------------------------------------------------------------
+    def frame(self) -> SimFrame:
+        """Render the current state (a black image, and why, when rendering fails)."""
+        cMo = self.arm.cMo()
+        render_error = ''
+        try:
+            img = self.renderer.render(cMo)
+        except Exception as e:  # noqa: BLE001 - a frame we cannot render: black, say why
+            render_error = str(e)
+            img = np.zeros((self.camera.height, self.camera.width, 3), np.uint8)
+        return SimFrame(START_TIME + self.arm.t, img, cMo.inverse(),
+                        tuple(self.arm.joint_names), self.arm.q.copy(), self.arm.qdot.copy(),
+                        self.arm.info, render_error, self._step_error)
+
+    # --- jumps ----------------------------------------------------------------------
+    def _jump(self, q, what: str) -> Jump:
+        self.arm.set_q(q)
+        self.arm.stop()
+        self.arm.t += self.dt  # one period passes, so the new image has a new stamp
+        self.waiting = self.lockstep
+        self._step_error = ''
+        frame = self.frame()
+        # the stamp ends the reply, so a caller knows which images show the new pose
+        return Jump(True, f'at {what}: q={np.round(q, 4).tolist()}, first image stamped '
+                    f'{frame.t:.9f}', frame)
+
+    def reset(self) -> Jump:
+        """Go back to the start configuration, at rest, watchdog re-armed (time kept)."""
+        t = self.arm.t
+        self.arm.reset()
+        self.arm.t = t
+        return self._jump(self.arm.q_start, 'start (reset)')
+
+    def go(self, which: str) -> Jump:
+        """Jump to the 'start' or 'desired' configuration of the current parameters."""
+        try:
+            q = self.named(which)
+        except ParameterError as e:
+            return Jump(False, str(e))
+        return self._jump(q, which)
+
+    def hold(self) -> Jump:
+        """Drop the current command (the arm stops at the next step)."""
+        self.arm.stop()
+        return Jump(True, 'command dropped')
