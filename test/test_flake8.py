@@ -17,7 +17,6 @@ import pytest
 
 
 @pytest.mark.flake8
-@pytest.mark.xfail(strict=True, reason='issue 12: the lint findings are being fixed')
 @pytest.mark.linter
 @pytest.mark.slow
 def test_flake8():

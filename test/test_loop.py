@@ -1,8 +1,11 @@
-"""The closed loop over ROS 2 (issue 5), in launch_testing's spirit: the installed
-executables (colcon build into a temporary install space, resolved as ``ros2 run`` does) are
-started as processes on the test's own ROS_DOMAIN_ID; the test waits for topics, asserts on
-their content, then checks clean exit codes. Lockstep simulation: results do not depend on
-the machine's speed."""
+"""
+The closed loop over ROS 2 (issue 5), in launch_testing's spirit.
+
+The installed executables (colcon build into a temporary install space, resolved as
+``ros2 run`` does) are started as processes on the test's own ROS_DOMAIN_ID; the test waits
+for topics, asserts on their content, then checks clean exit codes. Lockstep simulation:
+results do not depend on the machine's speed.
+"""
 from __future__ import annotations
 
 from pathlib import Path
@@ -52,7 +55,6 @@ class Topics:
                                  lambda m: self.meas.append(m), 1000)
 
 
-
 @pytest.mark.parametrize('config, ideal', [
     ('special_sphere', True), ('cc_target', True), ('wrong_radius', False),
     ('calibration_error', False), ('balloon', False)])
@@ -98,9 +100,12 @@ def test_full_loop_converges(config, ideal, launch, test_node):
 
 
 def test_lockstep_runs_are_the_same_run(launch):
-    """Two lockstep runs of the same config converge after the same number of iterations to
-    the same pose, however the machine's load delays DDS traffic (the servo answers the
-    current frame only, so one frame is in flight)."""
+    """
+    Two lockstep runs of one config converge in the same iterations to the same pose.
+
+    However the machine's load delays DDS traffic: the servo answers the current frame
+    only, so one frame is in flight.
+    """
     import re
     runs = []
     for _ in range(2):
@@ -187,10 +192,13 @@ def test_detector_survives_garbage_images(launch, test_node):
 
 
 def test_servo_safety(launch, test_node):
-    """Zero twist when waiting, when the target is lost, on a malformed or NaN input, when
-    only late images come for longer than ``timeout``, and as the last word on Ctrl-C; a
-    late image is not answered; a real twist carries the image stamp and its age in
-    servo/state."""
+    """
+    Send a zero twist whenever the servo cannot servo.
+
+    That is: when waiting, when the target is lost, on a malformed or NaN input, when only
+    late images come for longer than ``timeout``, and as the last word on Ctrl-C; a late
+    image is not answered; a real twist carries the image stamp and its age in servo/state.
+    """
     from diagnostic_msgs.msg import DiagnosticStatus
     from sphere_servo.ros.vectors import features_msg
     node, spin = test_node
@@ -208,6 +216,7 @@ def test_servo_safety(launch, test_node):
     assert all(_norm(t) == 0 for t in twists)
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
+
     def now() -> float:  # image stamps on the servo's (wall) clock, as a camera stamps them
         return round(node.get_clock().now().nanoseconds * 1e-9, 3)
 
@@ -253,9 +262,13 @@ def test_servo_safety(launch, test_node):
 
 
 def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
-    """use_sim_time + max_image_age 0 (the lockstep configs): features of the frame at the
-    simulator's clock are answered, those of an older frame are skipped (no twist: in
-    lockstep a twist steps the simulator), and a repeat of the same frame is answered once."""
+    """
+    Answer the current frame once in lockstep (use_sim_time, max_image_age 0).
+
+    Features of the frame at the simulator's clock are answered, those of an older frame
+    are skipped (no twist: in lockstep a twist steps the simulator), and a repeat of the
+    same frame is answered once.
+    """
     from rosgraph_msgs.msg import Clock
     from sphere_servo.ros.conversions import stamp_from_seconds
     from sphere_servo.ros.vectors import features_msg
@@ -303,8 +316,12 @@ def _stamp_s(msg) -> float:
 
 
 def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
-    """Kill ``detector`` mid-run: the servo sends zero velocity within its timeout and the
-    arm stops; restart it: the loop resumes and converges."""
+    """
+    Kill ``detector`` mid-run: the arm stops; restart it: the loop converges.
+
+    The servo sends zero velocity within its timeout and the arm stops; after the restart
+    the loop resumes and converges.
+    """
     import time
     cfg = load_config(find_config('special_sphere'))
     timeout = node_params(cfg, 'servo')['timeout']
@@ -331,6 +348,7 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
         # at rest: the newest joint states (by sim stamp; under load Fast DDS delivers the
         # small topics up to seconds late, so arrival time says little) have zero
         # velocities and one position: the stale servo's zeros step the lockstep sim
+
         def newest(k=3):
             return sorted(joints, key=lambda tm: _stamp_s(tm[1]))[-k:]
         sup.wait(lambda: all(np.allclose(m.velocity, 0.0) for _, m in newest()), 10.0)
@@ -348,8 +366,8 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
             sup.close()
         codes = run.stop()
         out.close()
-    assert all(code == 0 for name, code in codes.items()), (codes, (tmp_path / 'launch.log')
-                                                             .read_text()[-3000:])
+    log = (tmp_path / 'launch.log').read_text()[-3000:]
+    assert all(code == 0 for name, code in codes.items()), (codes, log)
 
 
 def _exact_measurement(cMo, target, t: float):
@@ -365,9 +383,13 @@ def _exact_measurement(cMo, target, t: float):
 
 
 def test_features_node_carries_stamps_and_teaches(launch, test_node):
-    """features: no output before a desired exists; ~/teach takes the latest measurement;
-    then every measurement gives features stamped with its header, s − s* = 0 on the taught
-    image; an empty measurement gives an empty (target lost) features message."""
+    """
+    Check that features carry the image stamps and teach from the latest measurement.
+
+    No output before a desired exists; ~/teach takes the latest measurement; then every
+    measurement gives features stamped with its header, s − s* = 0 on the taught image; an
+    empty measurement gives an empty (target lost) features message.
+    """
     from std_srvs.srv import Trigger
     from sphere_servo.ros.vectors import measurement_msg
     node, spin = test_node
@@ -398,9 +420,12 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
 
 
 def test_features_desired_from_a_pose_in_the_parameters(launch, test_node):
-    """desired_source: pose — s* is the exact projection from ``desired_cMo``: a
-    measurement at that pose gives s − s* = 0, one from elsewhere gives the ground-truth
-    error ((t − t*)/r for s_n,t; log(ᶜ*R_c) = log(R* Rᵀ) for θu)."""
+    """
+    Take s* from ``desired_cMo`` (desired_source: pose): the exact projection.
+
+    A measurement at that pose gives s − s* = 0, one from elsewhere gives the ground-truth
+    error ((t − t*)/r for s_n,t; log(ᶜ*R_c) = log(R* Rᵀ) for θu).
+    """
     import pinocchio as pin
     node, spin = test_node
     target = special_sphere()
@@ -425,8 +450,11 @@ def test_features_desired_from_a_pose_in_the_parameters(launch, test_node):
 
 
 def test_detector_overlay_draws_the_published_ellipse(launch, test_node):
-    """publish_overlay: the frame with the detection drawn, under the image's header; the
-    green ellipse lies where the measurement says."""
+    """
+    Publish the overlay (publish_overlay): the frame with the detection drawn.
+
+    It carries the image's header, and the green ellipse lies where the measurement says.
+    """
     node, spin = test_node
     overlays, meas = [], []
     node.create_subscription(Image, 'detector/overlay', overlays.append, 10)
@@ -487,8 +515,11 @@ def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
 
 
 def _node_pids(domain: str) -> dict[int, str]:
-    """Live (not zombie) processes of installed sphere_servo executables on ``domain``:
-    pid → executable name, from /proc."""
+    """
+    Find the live (not zombie) sphere_servo executables on ``domain``.
+
+    Returns pid → executable name, from /proc.
+    """
     found = {}
     for d in Path('/proc').iterdir():
         try:
@@ -504,14 +535,19 @@ def _node_pids(domain: str) -> dict[int, str]:
 
 
 def test_nodes_die_with_a_killed_launcher(launch, test_node, ros_env):
-    """A launcher killed outright (SIGKILL: no chance to stop its nodes) must not leave
-    orphaned nodes driving the arm: each gets SIGTERM from the kernel and exits cleanly."""
+    """
+    Leave no orphaned node driving the arm when the launcher is killed with SIGKILL.
+
+    The launcher has no chance to stop its nodes: each gets SIGTERM from the kernel and
+    exits cleanly.
+    """
     from diagnostic_msgs.msg import DiagnosticStatus
     node, spin = test_node
     states = []
     node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 10)
     proc = launch('launcher', '--config', 'special_sphere')
     assert spin(60.0, until=lambda: bool(states)), proc.log()
+
     def nodes():
         return {pid: name for pid, name in _node_pids(ros_env['ROS_DOMAIN_ID']).items()
                 if pid != proc.popen.pid}
@@ -527,8 +563,11 @@ def test_nodes_die_with_a_killed_launcher(launch, test_node, ros_env):
 
 
 def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
-    """desired_source: image — the desired image file is detected with the camera_info
-    intrinsics; the same image's measurement then gives zero error."""
+    """
+    Detect the desired image file (desired_source: image) with the camera_info intrinsics.
+
+    The same image's measurement then gives zero error.
+    """
     import cv2
     from sphere_servo.ros.vectors import measurement_msg
     from sphere_servo.vision.detector import Detector

@@ -19,9 +19,8 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection, Qos, QosTime
 from rosbags.typesys import get_typestore, Stores
-import yaml
-
 from sphere_servo.vision.image import image_from_buffer, LAYOUTS
+import yaml
 
 __all__ = [
     'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'select_connections',

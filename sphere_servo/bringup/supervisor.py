@@ -50,6 +50,7 @@ class Supervisor:
         self.last_pose = None
         self.last_meas_stamp = -1.0
         self.t_start = 0.0  # stamp of the first image at the start pose
+        self.state_stamp = -1.0  # newest image stamp the servo reported a state for
         self.t_enabled = None    # stamp of the first image the enabled servo answered
         self.t_converged = None  # stamp of the first image the servo called converged, after
         #                          t_start, and the servo's iteration count there (it counts
@@ -109,6 +110,10 @@ class Supervisor:
             self.node.get_logger().warn(f'unknown servo state {msg.message!r}',
                                         throttle_duration_sec=5.0)
         self.state_values = vals = {kv.key: kv.value for kv in msg.values}
+        try:
+            self.state_stamp = max(self.state_stamp, float(vals.get('stamp', '-1')))
+        except ValueError:
+            pass
         if self.state not in (ServoState.SERVOING, ServoState.CONVERGED):
             return
         try:
@@ -262,6 +267,10 @@ class Supervisor:
                          30.0, alive):
             raise LaunchError('the arm did not leave the desired pose')
         log(f'arm at the start pose: {res.message}')
+        # the servo's sim clock may still lag the jump: enabled before it has answered a
+        # start-pose image, it would answer (and count) a frame from the desired pose
+        if not self.wait(lambda: self.state_stamp >= self.t_start - 1e-9, 30.0, alive):
+            raise LaunchError('the servo did not answer an image of the start pose')
         self.enable_servo(log)
 
     def enable_servo(self, log) -> None:
