@@ -8,6 +8,7 @@ bags differ), not from this package's writer; what a replay publishes over DDS i
 from __future__ import annotations
 
 from pathlib import Path
+import sqlite3
 
 import bag_cases as bc
 import pytest
@@ -15,7 +16,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 from sphere_servo.bag import bagio
-from sphere_servo.bag.metadata import INFINITE, normal_duration, parse_metadata
+from sphere_servo.bag.metadata import (INFINITE, normal_duration, parse_metadata,
+                                       read_metadata)
 from sphere_servo.bag.replay import unplayable
 import yaml
 
@@ -135,6 +137,22 @@ def test_bag_without_metadata_and_bare_storage_file(tmp_path, storage):
     assert _strings(lone) == expected
 
 
+def test_message_compressed_bag_without_metadata(tmp_path):
+    """Per-message zstd (rosbag2_compression) is recognised without metadata.yaml too."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode
+    bag = tmp_path / 'z'
+    w = Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3)
+    w.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    with w:
+        c = w.add_connection('/chatter', bc.STRING, typestore=bc.TS)
+        for i in range(4):
+            w.write(c, i + 1, bc.string_cdr(f'z{i}'))
+    expected = [('/chatter', i + 1, f'z{i}') for i in range(4)]
+    assert _strings(bag) == expected
+    (bag / 'metadata.yaml').unlink()
+    assert _strings(bag) == expected
+
+
 @pytest.mark.parametrize('storage', STORAGES)
 def test_split_bag(tmp_path, storage):
     bag = tmp_path / 'wbag'
@@ -229,6 +247,57 @@ def test_bad_metadata_refuses_the_bag(tmp_path):
     path.write_text(path.read_text().replace('message_count: 3', 'message_count: 3x', 1))
     with pytest.raises(bagio.BagError, match='message_count must be a non-negative integer'):
         bagio.open_bag(bag)
+
+
+def test_written_metadata_is_jazzys(tmp_path):
+    """Our writer: ros_distro jazzy, MCAP channel metadata as rosbag2_storage_mcap's."""
+    from sphere_servo.bag import mcap
+    from sphere_servo.bag.writer import BagWriter
+    for storage in STORAGES:
+        path = tmp_path / storage
+        with BagWriter(path, storage) as w:
+            t = w.add_topic('/chatter', bc.STRING, [bc.foxy_qos()], typestore=bc.TS)
+            for i in range(5):
+                w.write(t, 100 + i, bc.string_cdr(str(i)), publish_time=50 + i)
+        meta = read_metadata(path)
+        assert meta.ros_distro == 'jazzy' and meta.version == 9
+        raw = yaml.safe_load((path / 'metadata.yaml').read_text())[
+            'rosbag2_bagfile_information']
+        assert list(raw) == ['version', 'storage_identifier', 'duration', 'starting_time',
+                             'message_count', 'topics_with_message_count',
+                             'compression_format', 'compression_mode', 'relative_file_paths',
+                             'files', 'custom_data', 'ros_distro']
+        ext = '.mcap' if storage == 'mcap' else '.db3'
+        assert raw['relative_file_paths'] == [f'{storage}_0{ext}']
+        (topic,) = meta.topics
+        assert topic.type_hash == bc.TS.hash_rihs01(bc.STRING)
+        f = path / raw['relative_file_paths'][0]
+        if storage == 'mcap':
+            sc = mcap.scan(f)  # reads the data section of the finished file
+            (ch,) = sc.channels.values()
+            assert ch.metadata['topic_type_hash'] == topic.type_hash
+            assert yaml.safe_load(ch.metadata['offered_qos_profiles'])[0]['deadline'] == {
+                'sec': 9223372036, 'nsec': 854775807}
+            (schema,) = sc.schemas.values()
+            assert (schema.name, schema.encoding) == (bc.STRING, 'ros2msg')
+            assert sc.library and sc.stopped.startswith('summary') and sc.message_count == 5
+            with AnyReader([path], default_typestore=bc.TS) as r:
+                assert [t for _, t, _ in r.messages()] == [100, 101, 102, 103, 104]
+            from rosbags.rosbag2.storage_mcap import McapReader
+            mr = McapReader(f)
+            mr.open()  # the summary: statistics, chunk indexes with their message indexes
+            assert mr.statistics.message_count == 5 and mr.statistics.channel_count == 1
+            assert sum(sum(c.channel_count.values()) for c in mr.chunks) == 5
+            mr.close()
+        else:
+            con = sqlite3.connect(f)
+            assert con.execute('SELECT schema_version, ros_distro FROM schema').fetchall() == [
+                (4, 'jazzy')]
+            assert con.execute('PRAGMA journal_mode').fetchone() == ('delete',)
+            (stored,) = con.execute('SELECT metadata FROM metadata').fetchone()
+            assert yaml.safe_load(stored)['ros_distro'] == 'jazzy'
+            con.close()
+            assert not Path(f'{f}-wal').exists()
 
 
 def test_older_formats_read(tmp_path):

@@ -37,6 +37,7 @@ from sphere_servo.bag import mcap
 from sphere_servo.bag.metadata import BagError, BagMeta, normal_qos, read_metadata, STORAGES
 
 _TYPESTORE = None
+ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 REINDEX_HINT = 'run `reindex {}` (ros2 run sphere_servo reindex) to recover its messages'
 
 
@@ -73,6 +74,19 @@ def unclosed(path: Path) -> str | None:
         if side.is_file() and side.stat().st_size > 0:
             return f'its {side.name} holds data not yet in the database (never closed)'
     return None
+
+
+def message_compression(st) -> str:
+    """
+    Return ``message`` if an open sqlite3 storage holds zstd-compressed messages, else ''.
+
+    For a bag without ``metadata.yaml``: its first message tells (CDR starts with an
+    encapsulation header, never with the zstd frame magic).
+    """
+    if not st.metadata.message_count:
+        return ''
+    first = next(iter(st.messages(st.connections)), None)
+    return 'message' if first is not None and bytes(first[2][:4]) == ZSTD_MAGIC else ''
 
 
 def check_sqlite(path: Path, recover: bool = False) -> None:
@@ -183,6 +197,9 @@ class BagReader:
                 except Exception as err:  # rosbags raises several types: all "unreadable"
                     raise BagError(f'{f.name}: {one_line(err)}') from None
                 self.storages.append(st)
+            if self.meta is None and self.storage == 'sqlite3':
+                modes = {message_compression(st) for st in self.storages} - {''}
+                self.compression_mode = modes.pop() if modes else ''
             self._merge()
         except BagError as err:
             self.close()

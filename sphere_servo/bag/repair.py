@@ -30,9 +30,8 @@ import sys
 from sphere_servo.bag import mcap
 from sphere_servo.bag.metadata import (BagError, BagMeta, FileMeta, metadata_text, normal_qos,
                                        read_metadata, TopicMeta, write_metadata)
-from sphere_servo.bag.reader import check_sqlite, one_line, storage_files, unclosed
-
-ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
+from sphere_servo.bag.reader import (check_sqlite, message_compression, one_line,
+                                     storage_files, unclosed)
 
 
 @dataclass
@@ -78,11 +77,7 @@ def _file_meta(path: Path) -> tuple[list[TopicMeta], FileMeta, str]:
                   for c in st.connections]
         md = st.metadata
         n = md.message_count
-        compressed = ''
-        if path.suffix == '.db3' and n:
-            first = next(iter(st.messages(st.connections)), None)
-            if first is not None and bytes(first[2][:4]) == ZSTD_MAGIC:
-                compressed = 'message'  # per-message zstd: CDR never starts so
+        compressed = message_compression(st) if path.suffix == '.db3' else ''
         span = FileMeta(path.name, md.start_time if n else 0,
                         max(0, md.end_time - 1 - md.start_time) if n else 0, n)
         return topics, span, compressed
