@@ -29,6 +29,7 @@ setup(
             'launcher = sphere_servo.bringup.launcher:main',
             'record = sphere_servo.bag.record:main',
             'replay = sphere_servo.bag.replay:main',
+            'reindex = sphere_servo.bag.repair:main',
             'refeatures = sphere_servo.bag.refeatures:main',
         ],
     },

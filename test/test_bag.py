@@ -237,6 +237,45 @@ def test_ready_service_names_what_is_not_recorded_yet(launch, test_node, tmp_pat
     assert late and rec.stop() == 0, rec.log()
 
 
+def test_idle_service_says_when_nothing_new_came(launch, test_node, tmp_path):
+    """
+    ``/recorder/idle`` succeeds once nothing new has arrived for ``--idle-quiet`` s.
+
+    A supervisor stopping a run waits for it before interrupting the recorder, which then
+    stops at once. A byte-identical repeat of a topic's last message is not new (an idle
+    lockstep arm_sim re-publishes).
+    """
+    from std_srvs.srv import Trigger
+    node, spin = test_node
+    rec = launch('record', '-o', str(tmp_path / 'bag'), '--topics', '/idle_test',
+                 '--idle-quiet', '1.0')
+    pub = node.create_publisher(String, '/idle_test', QoSProfile(depth=10))
+    cli = node.create_client(Trigger, '/recorder/idle')
+    assert spin(20.0, until=lambda: cli.service_is_ready() and
+                pub.get_subscription_count() > 0), rec.log()
+
+    def ask():
+        fut = cli.call_async(Trigger.Request())
+        assert spin(10.0, until=fut.done), rec.log()
+        return fut.result()
+
+    for i in range(30):  # 1.5 s of news
+        pub.publish(String(data=f'n{i}'))
+        spin(0.05)
+    busy = ask()
+    assert not busy.success and busy.message.startswith('nothing new for 0.'), busy.message
+    spin(1.3)
+    assert ask().success
+    pub.publish(String(data='n29'))  # a repeat of the last one
+    spin(0.3)
+    assert ask().success
+    pub.publish(String(data='news'))
+    spin(0.3)
+    late = ask()
+    assert not late.success, late.message
+    assert rec.stop() == 0, rec.log()
+
+
 def write_timing_bag(path: Path, storage: StoragePlugin) -> list[int]:
     """Write a bag with irregular gaps (20–70 ms) on /chatter; return its timestamps."""
     t, stamps = 1_700_000_000_000_000_000, []
