@@ -11,16 +11,17 @@ The controller may be given *wrong* intrinsics while the renderer keeps the true
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property
 import math
 
 import numpy as np
 
-from sphere_servo.core.central import (CentralCamera, det2, first_fold, Lifted, odd_poly,
-                                       radtan, undistort_radtan)
+from sphere_servo.core.central import (CameraError, CentralCamera, det2, first_fold, Lifted,
+                                       odd_poly, radtan, undistort_radtan)
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2
+from sphere_servo.core.validation import Bound, Violation
 
 
 @dataclass(frozen=True)
@@ -36,15 +37,12 @@ class CameraIntrinsics(CentralCamera):
     dist: tuple = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __post_init__(self):
-        vals = [self.px, self.py, self.u0, self.v0, *self.dist]
-        if not all(np.isfinite(v) for v in vals):
-            raise ValueError(f'camera intrinsics must be finite, got {self}')
-        if self.px <= 0 or self.py <= 0:
-            raise ValueError(f'focal lengths must be > 0, got px={self.px}, py={self.py}')
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f'image size must be > 0, got {self.width}x{self.height}')
+        """Refuse impossible intrinsics (:meth:`CentralCamera._check_intrinsics`)."""
+        self._check_intrinsics(dict(zip(('k1', 'k2', 't1', 't2', 'k3'), self.dist)))
         if len(self.dist) != 5:
-            raise ValueError(f'plumb_bob distortion needs 5 coefficients, got {len(self.dist)}')
+            raise CameraError(Violation('plumb_bob distortion d', list(self.dist), Bound.SHAPE,
+                                        'plumb_bob distortion needs 5 coefficients'))
+        self._check_principal_point()
 
     @property
     def K(self) -> np.ndarray:
@@ -61,12 +59,6 @@ class CameraIntrinsics(CentralCamera):
     @property
     def has_distortion(self) -> bool:
         return any(abs(d) > 0 for d in self.dist)
-
-    def with_error(self, px: float = 0.0, py: float = 0.0, u0: float = 0.0,
-                   v0: float = 0.0) -> 'CameraIntrinsics':
-        """Intrinsics off by the given *relative* errors, e.g. ``px=0.35`` for +35 % px."""
-        return replace(self, px=self.px * (1 + px), py=self.py * (1 + py),
-                       u0=self.u0 * (1 + u0), v0=self.v0 * (1 + v0))
 
     # --- projections --------------------------------------------------------------------
     def pixel_to_normalized(self, uv: Points2) -> Points2:

@@ -34,18 +34,9 @@ import math
 import numpy as np
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.central import (CentralCamera, det2, first_fold, Lifted, odd_poly,
-                                       radtan, solve_odd_poly, undistort_radtan)
-
-
-def _require(params: dict, width, height) -> None:
-    """Raise ``ValueError`` on non-finite parameters, focal lengths ≤ 0 or an empty image."""
-    if not all(math.isfinite(float(v)) for v in params.values()):
-        raise ValueError(f'camera parameters must be finite, got {params}')
-    if params['px'] <= 0 or params['py'] <= 0:
-        raise ValueError(f"focal lengths must be > 0, got px={params['px']}, py={params['py']}")
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f'image size must be > 0, got {width}x{height}')
+from sphere_servo.core.central import (CameraError, CentralCamera, det2, first_fold, Lifted,
+                                       odd_poly, radtan, solve_odd_poly, undistort_radtan)
+from sphere_servo.core.validation import Bound, check_number, refuse
 
 
 def camera_info_fields(cam, model: str, d) -> dict:
@@ -94,9 +85,9 @@ class FisheyeCamera(CentralCamera):
         if len(self.dist) != 4:
             raise ValueError(f'equidistant distortion needs 4 coefficients (k1..k4), got '
                              f'{len(self.dist)}')
-        _require({'px': self.px, 'py': self.py, 'u0': self.u0, 'v0': self.v0,
-                  **{f'k{i + 1}': k for i, k in enumerate(self.dist)}}, self.width, self.height)
+        self._check_intrinsics({f'k{i + 1}': k for i, k in enumerate(self.dist)})
         self._check_unfolded()
+        self._check_principal_point()
 
     _has_tangential = False
 
@@ -176,11 +167,11 @@ class UnifiedCamera(CentralCamera):
         if len(self.dist) != 4:
             raise ValueError(f'unified distortion needs 4 coefficients (k1 k2 p1 p2), got '
                              f'{len(self.dist)}')
-        _require({'px': self.px, 'py': self.py, 'u0': self.u0, 'v0': self.v0, 'xi': self.xi,
-                  **dict(zip(('k1', 'k2', 'p1', 'p2'), self.dist))}, self.width, self.height)
+        self._check_intrinsics({'xi': self.xi, **dict(zip(('k1', 'k2', 'p1', 'p2'), self.dist))})
         if self.xi < 0:
-            raise ValueError(f'the unified model needs xi >= 0, got {self.xi}')
+            refuse(CameraError, 'xi', self.xi, Bound.RANGE, 'the unified model needs xi >= 0')
         self._check_unfolded()
+        self._check_principal_point()
 
     @property
     def _radtan(self) -> tuple:
@@ -287,27 +278,36 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     ``p`` (rectification, stereo projection) do not change how a raw image is lifted and are
     not used.
 
-    Raises ``ValueError`` for an unknown model, a wrong number of coefficients, a K with skew
-    or not of the form ``[fx 0 cx; 0 fy cy; 0 0 1]``, non-finite or impossible values (a focal
-    length ≤ 0, ξ < 0) and a distortion that folds inside the image.
+    Raises :class:`~sphere_servo.core.central.CameraError` (a ``ValueError``) for an unknown
+    model, a wrong number of coefficients, a K with skew or not of the form
+    ``[fx 0 cx; 0 fy cy; 0 0 1]``, non-finite or impossible values (a focal length ≤ 0 or out
+    of its physical range, a principal point far outside the image, ξ < 0; see
+    ``CentralCamera._check_intrinsics``) and a distortion that folds inside the image.
     """
     k = np.asarray(k, dtype=float).ravel()
-    if k.size != 9 or not np.all(np.isfinite(k)):
-        raise ValueError(f'CameraInfo.k must be 9 finite entries, got {k.tolist()}')
+    if k.size != 9:
+        refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.SHAPE,
+               'CameraInfo.k must be 9 finite entries')
+    if not np.all(np.isfinite(k)):
+        refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.FINITE,
+               'CameraInfo.k must be 9 finite entries')
     if k[1] != 0.0 or k[3] != 0.0 or k[6] != 0.0 or k[7] != 0.0 or k[8] != 1.0:
-        raise ValueError(f'CameraInfo.k must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew), got '
-                         f'{k.tolist()}')
+        refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.UNSUPPORTED,
+               'CameraInfo.k must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)')
     d = [float(v) for v in (d if d is not None else ())]
     model = distortion_model or ('plumb_bob' if not d else None)
     n = {'plumb_bob': 5, 'equidistant': 4, 'unified': 5}.get(model)
     if n is None:
-        raise ValueError(f'unsupported distortion_model {distortion_model!r} (with {len(d)} '
-                         f'coefficients); supported: {", ".join(MODELS)}')
+        refuse(CameraError, 'distortion_model', f'{distortion_model!r} with {len(d)} '
+               'coefficients', Bound.UNSUPPORTED,
+               f'unsupported distortion_model; supported: {", ".join(MODELS)}')
     if not d and model != 'unified':
         d = [0.0] * n
     if len(d) != n:
-        raise ValueError(f'distortion_model {model!r} needs {n} coefficients in d, got '
-                         f'{len(d)}: {d}')
+        refuse(CameraError, 'CameraInfo.d', d, Bound.SHAPE,
+               f'distortion_model {model!r} needs {n} coefficients in d')
+    width = check_number(CameraError, 'width', width)
+    height = check_number(CameraError, 'height', height)
     kw = {'px': float(k[0]), 'py': float(k[4]), 'u0': float(k[2]), 'v0': float(k[5]),
           'width': int(width), 'height': int(height)}
     if model == 'equidistant':
@@ -317,3 +317,32 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     cam = CameraIntrinsics(**kw, dist=tuple(d))
     cam._check_unfolded()
     return cam
+
+
+def check_camera_for_image(camera, width: int, height: int, applies_distortion: bool):
+    """
+    Return ``camera`` if it is the camera of an image of ``width × height`` pixels, else refuse.
+
+    :class:`~sphere_servo.core.central.CameraError` when
+
+    - the camera's size differs from the image's (both sizes named): its K belongs to
+      another resolution or another camera;
+    - ``applies_distortion`` is False (the consumer uses K only, e.g. the conic of the
+      silhouette in the normalized plane) and the camera is not a distortion-free pinhole: a
+      consumer that ignored a model or its coefficients would measure a wrong sphere, with
+      no sign of it. A consumer that lifts pixels through the model (``lift``, which every
+      model's distortion enters) passes True.
+
+    The intrinsics themselves were checked when the camera was built.
+    """
+    if (int(camera.width), int(camera.height)) != (int(width), int(height)):
+        refuse(CameraError, 'camera size', f'{int(camera.width)}x{int(camera.height)}',
+               Bound.MISMATCH, f'the size of the image, {int(width)}x{int(height)}')
+    if not applies_distortion:
+        if not isinstance(camera, CameraIntrinsics):
+            refuse(CameraError, 'camera model', type(camera).__name__, Bound.UNSUPPORTED,
+                   'a pinhole: this consumer uses K only and would ignore the model')
+        if camera.has_distortion:
+            refuse(CameraError, 'plumb_bob distortion d', list(camera.dist),
+                   Bound.UNSUPPORTED, 'zero: this consumer uses K only and would ignore it')
+    return camera

@@ -39,9 +39,25 @@ import numpy as np
 
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2, Points3
+from sphere_servo.core.validation import Bound, check_number, check_range, refuse, Violation
 
 _EPS = float(np.finfo(float).eps)
 _AXIS = np.array([0.0, 0.0, 1.0])
+
+#: largest image side (px): the largest sensors are ~20 000 px wide; CameraInfo's uint32
+#: would allow 4·10⁹, and a buffer that size cannot exist
+MAX_IMAGE_SIDE = 100_000
+#: focal lengths (px) relative to the image's larger side S: at 0.01 S a pinhole sees
+#: ±88.9° across the image and a fisheye puts its whole 180° into 1.6 % of it; at 10⁴ S
+#: the image spans 0.006°, beyond any telescope on a camera. Outside, K is corrupt.
+FOCAL_RATIO_MIN, FOCAL_RATIO_MAX = 1e-2, 1e4
+#: the principal point within this many image sizes of the image (a crop moves it off the
+#: centre, by a fraction of the image; farther is a corrupt K)
+PRINCIPAL_POINT_MARGIN = 1.0
+
+
+class CameraError(GeometryError):
+    """Camera parameters that no camera has, or a camera unusable for the given image."""
 
 
 class Lifted(NamedTuple):
@@ -272,9 +288,70 @@ class CentralCamera:
 
     def with_error(self, px: float = 0.0, py: float = 0.0, u0: float = 0.0,
                    v0: float = 0.0):
-        """Return the model with intrinsics off by *relative* errors (``px=0.35``: +35 %)."""
-        return replace(self, px=self.px * (1 + px), py=self.py * (1 + py),
-                       u0=self.u0 * (1 + u0), v0=self.v0 * (1 + v0))
+        """
+        Return the model with intrinsics off by *relative* errors (``px=0.35``: +35 %).
+
+        Raises :class:`CameraError` naming the error parameter when the errors make the
+        camera impossible: not finite, a focal length ``px·(1 + e) ≤ 0`` (``e ≤ −1``), or
+        intrinsics outside the bounds of :meth:`_check_intrinsics`.
+        """
+        errors = {'px': px, 'py': py, 'u0': u0, 'v0': v0}
+        for name, e in errors.items():
+            e = errors[name] = check_number(CameraError, f'intrinsics error {name}', e)
+            if name in ('px', 'py') and not e > -1.0:
+                refuse(CameraError, f'intrinsics error {name}', e, Bound.RANGE,
+                       f'> −1, so that the focal length {name}·(1 + e) stays > 0')
+        try:
+            return replace(self, **{n: getattr(self, n) * (1.0 + e) for n, e in errors.items()})
+        except CameraError as exc:  # say which error parameter made it impossible
+            v = exc.violation
+            if v is None:
+                raise
+            named = ([v.quantity] if v.quantity in errors else
+                     [n for n, e in errors.items() if e != 0.0])
+            cause = ', '.join(f'{n} = {errors[n]!r}' for n in named)
+            raise CameraError(Violation(f'{v.quantity} with intrinsics error {cause}',
+                                        v.value, v.bound, v.limit)) from None
+
+    # --- the parameters' bounds -----------------------------------------------------------
+    def _check_intrinsics(self, coefficients: dict) -> None:
+        """
+        Refuse (:class:`CameraError`) intrinsics that no camera has.
+
+        Every value finite (the distortion ``coefficients`` too, by name); the image size
+        ``1 ≤ width, height ≤ MAX_IMAGE_SIDE``; focal lengths > 0 and within
+        ``[FOCAL_RATIO_MIN, FOCAL_RATIO_MAX] × max(width, height)`` (so ``fx = 1e300`` is
+        refused here, not left to overflow in a projection).
+        """
+        for name in ('px', 'py', 'u0', 'v0'):
+            check_number(CameraError, name, getattr(self, name))
+        for name, c in coefficients.items():
+            check_number(CameraError, name, c)
+        for name in ('width', 'height'):
+            n = check_number(CameraError, name, getattr(self, name))
+            if not (1 <= n <= MAX_IMAGE_SIDE and n == int(n)):
+                refuse(CameraError, name, getattr(self, name), Bound.RANGE,
+                       f'image size must be a whole number of pixels in [1, {MAX_IMAGE_SIDE}]')
+        side = max(int(self.width), int(self.height))
+        lo, hi = FOCAL_RATIO_MIN * side, FOCAL_RATIO_MAX * side
+        for name in ('px', 'py'):
+            f = getattr(self, name)
+            if not f > 0:
+                refuse(CameraError, name, f, Bound.RANGE, 'focal lengths must be > 0')
+            if not lo <= f <= hi:
+                refuse(CameraError, name, f, Bound.RANGE,
+                       f'focal lengths must be within [{FOCAL_RATIO_MIN:g}, '
+                       f'{FOCAL_RATIO_MAX:g}] × max(width, height) = [{lo:g}, {hi:g}] px')
+
+    def _check_principal_point(self) -> None:
+        """
+        Refuse a principal point farther than ``PRINCIPAL_POINT_MARGIN`` image sizes out.
+
+        That is ``−m·W ≤ u0 ≤ (1 + m)·W`` and the same for ``v0`` with H (:class:`CameraError`).
+        """
+        m = PRINCIPAL_POINT_MARGIN
+        for name, size in (('u0', self.width), ('v0', self.height)):
+            check_range(CameraError, name, getattr(self, name), -m * size, (1.0 + m) * size)
 
     # --- rays ↔ pixels --------------------------------------------------------------------
     @staticmethod
@@ -374,7 +451,7 @@ class CentralCamera:
     # --- the field inside the image -------------------------------------------------------
     def _check_unfolded(self) -> None:
         """
-        Raise ``ValueError`` if the distortion folds inside the image.
+        Raise :class:`CameraError` if the distortion folds inside the image.
 
         That is: a pixel inside the model's natural field that no valid ray reaches. Also
         refused: an image that sees no ray at all.
@@ -386,14 +463,16 @@ class CentralCamera:
         near = math.hypot((min(max(self.u0, -0.5), W) - self.u0) / self.px,
                           (min(max(self.v0, -0.5), H) - self.v0) / self.py)
         limit, is_fold = self._radial_limit()
+        name = type(self).__name__
         if near >= limit:
-            raise ValueError(f'{type(self).__name__}: no pixel of the {self.width}x{self.height}'
-                             f' image is in the field of the model ({self})')
+            refuse(CameraError, f'{name} field', self, Bound.FIELD,
+                   f'no pixel of the {self.width}x{self.height} image is in the field of the '
+                   'model')
         if is_fold and far >= limit:
-            raise ValueError(f'{type(self).__name__}: the distortion folds inside the image '
-                             f'(it stops increasing at {math.degrees(self.max_angle):.1f}° from '
-                             f'the axis, a distorted radius {limit:.4g} < {far:.4g} at the '
-                             f'farthest corner): not invertible ({self})')
+            refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
+                   f'the distortion folds inside the image (it stops increasing at '
+                   f'{math.degrees(self.max_angle):.1f}° from the axis, a distorted radius '
+                   f'{limit:.4g} < {far:.4g} at the farthest corner): not invertible')
         if self._has_tangential:
             u, v = np.meshgrid(np.linspace(-0.5, W, 65), np.linspace(-0.5, H, 49))
             uv = np.column_stack([u.ravel(), v.ravel()])
@@ -401,6 +480,6 @@ class CentralCamera:
             inside = np.hypot(md[:, 0], md[:, 1]) < 0.99 * limit
             ok = self.lift_where(uv[inside]).ok
             if not ok.all():
-                raise ValueError(f'{type(self).__name__}: the tangential distortion folds '
-                                 f'inside the image near pixel {uv[inside][~ok][0].tolist()} '
-                                 f'({self})')
+                refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
+                       'the tangential distortion folds inside the image near pixel '
+                       f'{uv[inside][~ok][0].tolist()}')

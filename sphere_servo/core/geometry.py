@@ -14,10 +14,20 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.types import Mat3, Twist, Vec3
+from sphere_servo.core.validation import Bound, Violation
 
 
 class GeometryError(ValueError):
-    """A geometric quantity is undefined (degenerate input, NaN, point at infinity)."""
+    """
+    A geometric quantity is undefined (degenerate input, NaN, point at infinity).
+
+    Built from a message or from a :class:`~sphere_servo.core.validation.Violation`, kept
+    as ``violation`` (None for a message): the typed reason of a refused value.
+    """
+
+    def __init__(self, what: str | Violation = ''):
+        self.violation = what if isinstance(what, Violation) else None
+        super().__init__(str(what))
 
 
 def skew(a: Vec3) -> Mat3:
@@ -50,8 +60,17 @@ def require_finite(a, what: str) -> np.ndarray:
 
 
 def sinc(x: float) -> float:
-    """``sin(x)/x`` with the removable singularity at 0."""
-    return 1.0 - x * x / 6.0 if abs(x) < 1e-4 else math.sin(x) / x
+    """
+    ``sin(x)/x`` with the removable singularity at 0.
+
+    Raises :class:`GeometryError` on ±inf (where ``math.sin`` would raise a bare
+    ``ValueError: math domain error``) and NaN.
+    """
+    if abs(x) < 1e-4:
+        return 1.0 - x * x / 6.0
+    if not abs(x) < math.inf:  # inf, and NaN (which compares False)
+        raise GeometryError(Violation('sinc argument', x, Bound.FINITE, 'a finite angle'))
+    return math.sin(x) / x
 
 
 def log3(R: Mat3) -> Vec3:
@@ -72,11 +91,17 @@ def L_omega(thetau: Vec3, sign: float = +1.0) -> Mat3:
     (rotation multiplied on the right; the paper's eq. (7) prints ``−``, which is wrong for
     this convention). ``sign = −1``: a rotation multiplied on the left (the ζ rows of s_cc).
     Equals Pinocchio's ``Jlog3`` for ``sign = +1``.
+
+    Raises :class:`GeometryError` when θ is not finite (an entry ±inf or NaN, or so large
+    that θ² overflows, ‖θu‖ ≳ 1e154): no matrix of such a θu exists.
     """
     x, y, z = (float(v) for v in thetau)
     theta = math.sqrt(x * x + y * y + z * z)
-    if theta < 1e-12:
+    if theta < 1e-12:  # NaN compares False: falls through to the finite check
         return np.eye(3)
+    if not theta < math.inf:
+        raise GeometryError(Violation('θ = ‖θu‖', theta, Bound.FINITE,
+                                      'finite θu entries with a finite norm'))
     x, y, z = x / theta, y / theta, z / theta
     # [u]×² = u uᵀ − I for a unit u:  L = (1 − c) I + c u uᵀ + a [u]×
     a = sign * theta / 2.0

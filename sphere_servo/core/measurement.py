@@ -11,6 +11,8 @@ algebra itself (fits, ellipses, blob moments → conic, silhouettes) is
 - :func:`depth_ratio`         ``‖P‖/r`` of a surface mark, eq. (11)–(12), σ = −1
 - :func:`cRo_special`, :func:`cRo_cc`   partial pose ``ᶜR_o``, eqs. (8)–(14) and the CC form
 - :func:`observe`             exact :class:`Observation` of a target from a pose (ground truth)
+- :func:`validated_observation`  the physical bounds a measurement from outside (a message,
+  a bag) must meet before use; :func:`validated_sphere` the sphere's part
 """
 from __future__ import annotations
 
@@ -25,12 +27,24 @@ from sphere_servo.core import linalg
 # conic_from_ellipse: re-exported, its callers knew it from here
 from sphere_servo.core.conics import conic_from_ellipse, conic_from_moments  # noqa: F401
 from sphere_servo.core.geometry import GeometryError, normalize
-from sphere_servo.core.targets import CC, mark_names, SPECIAL, Target
+from sphere_servo.core.targets import CC, KINDS, mark_names, SPECIAL, Target
 from sphere_servo.core.types import Mat3, Vec3
+from sphere_servo.core.validation import Bound, check_range, check_unit, refuse, UNIT_TOL
+
+#: smallest ``r_δ = r/‖O‖`` a measurement may have: a sphere 10⁹ radii away subtends 1e-9
+#: rad, four orders under the finest pixel of any camera (~1e-5 rad), so no image measures
+#: it; its ``s_n,t = 1/r_δ`` would exceed 1e9 (``features.S_NT_MAX``).
+R_DELTA_MIN = 1e-9
+#: how far (rad) a surface mark's ray may pass outside the silhouette cone: a mark is on the
+#: visible cap, so its ray meets the sphere; noise and a limb-cut mark move a measured ray
+#: by far less than 0.01 rad (6 px at a 600 px focal length), a wrong one by more.
+LIMB_TOL = 0.01
+#: half-angle (rad) of a pinhole's valid field: rays with z > 0
+PINHOLE_FIELD = 0.5 * math.pi
 
 
 class MeasurementError(GeometryError):
-    """The measurement does not define the requested quantity."""
+    """The measurement does not define the requested quantity, or breaks a physical bound."""
 
 
 @dataclass(frozen=True)
@@ -50,7 +64,9 @@ class SphereMeasurement:
 
     @cached_property
     def s_nt(self) -> Vec3:
-        """``s_n,t = b / r_δ = O / r`` (eq. 5)."""
+        """``s_n,t = b / r_δ = O / r`` (eq. 5); :class:`MeasurementError` unless 0 < r_δ < 1."""
+        if not 0.0 < self.r_delta < 1.0:
+            _refuse_r_delta(self.r_delta)
         return self.b / self.r_delta
 
 
@@ -138,13 +154,24 @@ def depth_ratio(sphere: SphereMeasurement, q: Vec3) -> float:
     Compute ``‖P‖/r`` of a surface point seen along ``q`` (eq. 11–12, σ = −1).
 
     ``(cos φ − √(r_δ² − sin² φ)) / r_δ`` with ``cos φ = bᵀq``: the visible side. The root's
-    argument is clamped at 0 (a mark measured just outside the silhouette, e.g. by noise).
+    argument is clamped at 0 (a mark measured just outside the silhouette, e.g. by noise;
+    :func:`validated_observation` refuses one farther out than ``LIMB_TOL``).
+    Raises :class:`MeasurementError` unless 0 < r_δ < 1 and ``cos φ > 0``.
     """
+    r_delta = sphere.r_delta
+    if not 0.0 < r_delta < 1.0:
+        _refuse_r_delta(r_delta)
     cphi = float(sphere.b @ q)
-    if cphi <= 0:
-        raise MeasurementError('mark direction points away from the sphere')
+    if not cphi > 0:
+        refuse(MeasurementError, 'bᵀq of a mark', cphi, Bound.GEOMETRY,
+               'bᵀq > 0: a surface mark is on the side of the sphere facing the camera')
     sin2 = max(0.0, 1.0 - cphi * cphi)
-    return (cphi - math.sqrt(max(0.0, sphere.r_delta ** 2 - sin2))) / sphere.r_delta
+    return (cphi - math.sqrt(max(0.0, r_delta * r_delta - sin2))) / r_delta
+
+
+def _refuse_r_delta(r_delta) -> None:
+    refuse(MeasurementError, 'r_delta', r_delta, Bound.RANGE,
+           '0 < r_delta < 1: the camera is outside the sphere')
 
 
 def P_over_r(sphere: SphereMeasurement, q: Vec3) -> Vec3:
@@ -158,14 +185,19 @@ def P3_over_r(sphere: SphereMeasurement, P1r: Vec3, q3: Vec3) -> Vec3:
 
     P3 lies on the tangent plane at P1, so with ``d = s_n,t − P1/r``,
     ``‖P3‖/r = (P1/r · d)/(q3 · d)`` (DESIGN.md §2).
+
+    Raises :class:`MeasurementError` (``GEOMETRY``) where the tip's ray does not meet the
+    tangent plane in front of the camera: the CC tip rule.
     """
     d = sphere.s_nt - P1r
     den = float(q3 @ d)
     if abs(den) < 1e-12:
-        raise MeasurementError('tangent tip ray is parallel to the tangent plane')
+        refuse(MeasurementError, 'P3 ray · (s_n,t − P1/r)', den, Bound.GEOMETRY,
+               '|q3 · d| ≥ 1e-12: the tip ray meets the tangent plane at P1')
     rho = float(P1r @ d) / den
-    if rho <= 0:
-        raise MeasurementError('tangent tip would lie behind the camera')
+    if not rho > 0:
+        refuse(MeasurementError, '‖P3‖/r', rho, Bound.GEOMETRY,
+               '‖P3‖/r > 0: the tip, on the tangent plane at P1, is in front of the camera')
     return rho * q3
 
 
@@ -285,3 +317,88 @@ def observe(cMo: pin.SE3, target: Target, require_visible: bool = True) -> Obser
             raise MeasurementError(f'mark {name} is hidden')
         q[name] = normalize(cMo.act(oP))
     return Observation(SphereMeasurement(b, r_delta), q, target.kind)
+
+
+# --- validation of a measurement from outside ----------------------------------------------
+def _angle(a: Vec3, b: Vec3) -> float:
+    """Angle between unit vectors (atan2 of ‖a × b‖ and aᵀb: exact near 0 and π)."""
+    c = np.cross(a, b)
+    return math.atan2(math.sqrt(float(c @ c)), float(a @ b))
+
+
+def validated_sphere(sphere: SphereMeasurement, field: float = PINHOLE_FIELD,
+                     unit_tol: float = UNIT_TOL) -> SphereMeasurement:
+    """
+    Return ``sphere`` (b as a float array) if it is physically possible, else refuse it.
+
+    Bounds (each refused with :class:`MeasurementError`, the quantity and its value):
+
+    - ``b`` finite, unit: ``|‖b‖ − 1| ≤ unit_tol`` (b = O/‖O‖);
+    - ``R_DELTA_MIN ≤ r_δ < 1``: ``r_δ = r/‖O‖`` < 1 as the camera is outside the sphere,
+      and no image resolves a sphere smaller than ``R_DELTA_MIN`` (see there);
+    - the silhouette cone inside the camera's valid field of half-angle ``field`` (rad):
+      ``∠(b, z) + asin(r_δ) < field``. For a pinhole (``field = π/2``) that is
+      ``b_z > r_δ``; a central camera whose field exceeds 90° (a fisheye, a catadioptric)
+      passes its own ``max_angle``;
+    - ``quality`` finite and ≥ 0.
+    """
+    b = check_unit(MeasurementError, 'b', sphere.b, unit_tol)
+    r_delta = check_range(MeasurementError, 'r_delta', sphere.r_delta, R_DELTA_MIN, 1.0,
+                          hi_open=True)
+    field = check_range(MeasurementError, 'camera field half-angle', field, 0.0, math.pi,
+                        lo_open=True)
+    edge = _angle(b / math.sqrt(float(b @ b)), np.array([0.0, 0.0, 1.0])) + math.asin(r_delta)
+    if not edge < field:
+        refuse(MeasurementError, 'silhouette edge angle ∠(b, z) + asin(r_delta)', edge,
+               Bound.FIELD, f'< {field:.6g} rad, the sphere entirely in the camera field'
+               + (' (pinhole: b_z > r_delta)' if field == PINHOLE_FIELD else ''))
+    quality = check_range(MeasurementError, 'quality', sphere.quality, 0.0)
+    return SphereMeasurement(b, r_delta, quality)
+
+
+def validated_observation(obs: Observation, field: float = PINHOLE_FIELD,
+                          limb_tol: float = LIMB_TOL,
+                          unit_tol: float = UNIT_TOL) -> Observation:
+    """
+    Return ``obs`` (arrays copied) if it is physically possible, else refuse it.
+
+    A measurement from outside (a message, a bag) passes this before use. Bounds, each
+    refused with :class:`MeasurementError` naming the quantity and its value:
+
+    - the sphere: :func:`validated_sphere` (with ``field``, ``unit_tol``);
+    - ``kind`` one of ``KINDS``; mark names those of the kind ('P1', 'P2' or 'P1', 'P3');
+      a missing mark is allowed (the target is then lost for the features, not invalid);
+    - each mark's ray ``q`` finite and unit (``unit_tol``);
+    - a surface mark (P1, P2) on the visible cap: its ray meets the sphere, i.e. its angle
+      to b is at most the silhouette's ``asin(r_δ)`` plus ``limb_tol`` rad (``depth_ratio``
+      clamps the small excess that noise gives; a larger one is impossible);
+    - the CC tip rule (P1 and P3 both seen): the tip ray meets the tangent plane at P1 in
+      front of the camera (:func:`P3_over_r`), at a point distinct from P1.
+    """
+    if obs.kind not in KINDS:
+        refuse(MeasurementError, 'target kind', obs.kind, Bound.RANGE, f'one of {KINDS}')
+    sphere = validated_sphere(obs.sphere, field, unit_tol)
+    names = mark_names(obs.kind)
+    limb = math.asin(sphere.r_delta) + check_range(MeasurementError, 'limb tolerance',
+                                                   limb_tol, 0.0)
+    q = {}
+    for name, ray in obs.q.items():
+        if name not in names:
+            refuse(MeasurementError, 'mark name', name, Bound.RANGE,
+                   f'one of {names} for a {obs.kind} target')
+        q[name] = ray = check_unit(MeasurementError, f'{name} ray', ray, unit_tol)
+        if name == 'P3':
+            continue
+        off = _angle(sphere.b, ray / math.sqrt(float(ray @ ray)))
+        if off > limb:
+            refuse(MeasurementError, f'angle between b and the {name} ray', off,
+                   Bound.GEOMETRY, f'≤ asin(r_delta) + {limb_tol:g} = {limb:.6g} rad: a '
+                   'surface mark lies on the visible cap')
+    if obs.kind == CC and 'P1' in q and 'P3' in q:
+        P1r = P_over_r(sphere, q['P1'])
+        P3r = P3_over_r(sphere, P1r, q['P3'])
+        gap = float(np.linalg.norm(P3r - P1r))
+        if not gap > 1e-9:
+            refuse(MeasurementError, '‖P3 − P1‖/r', gap, Bound.GEOMETRY,
+                   '> 1e-9: the tip is off the sphere, at the end of the tangent stick')
+    return Observation(sphere, q, obs.kind)
