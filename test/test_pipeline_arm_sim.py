@@ -52,9 +52,26 @@ def test_realtime_commands_do_not_step(lockstep):
     t0 = sim.frame().t
     out = sim.on_command([0.0, 0.0, 0.05, 0.0, 0.0, 0.0])
     assert out.valid and out.frame is None and sim.frame().t == t0
-    assert not sim.on_command([np.inf] * 6).valid  # ignored: the last valid one stays
-    moved = sim.on_tick()
-    assert moved.t == pytest.approx(t0 + DT) and np.any(moved.qdot)
+    assert np.any(sim.on_tick().qdot)  # the valid command runs on the ticks
+    refused = sim.on_command([np.inf] * 6)
+    assert not refused.valid and 'finite' in refused.refusal
+    stopped = sim.on_tick()  # a refused command stops the arm at once (issue 14, item 8)
+    assert stopped.t == pytest.approx(t0 + 2 * DT) and not np.any(stopped.qdot)
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_an_absurd_twist_is_refused_and_the_arm_stays_usable(lockstep, mode):
+    sim = ArmSimCore(lockstep.replace({'clock_mode': mode}))
+    q0 = sim.frame().q
+    out = sim.on_command([1e308, 0.0, 0.0, 0.0, 0.0, 1e307])
+    assert not out.valid and out.refusal
+    frame = out.frame if mode == 'lockstep' else sim.on_tick()
+    assert np.all(np.isfinite(frame.q)) and not np.any(frame.qdot)
+    np.testing.assert_array_equal(frame.q, q0)
+    assert frame.info.status is not Status.ERROR
+    ok = sim.on_command([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])  # usable without a reset
+    moved = ok.frame if mode == 'lockstep' else sim.on_tick()
+    assert ok.valid and np.all(np.isfinite(moved.q)) and np.any(moved.q != q0)
 
 
 def test_jumps_and_their_replies(lockstep):

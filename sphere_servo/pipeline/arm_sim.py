@@ -32,12 +32,13 @@ from sphere_servo.core.targets import make_target, Target
 from sphere_servo.core.types import Image
 from sphere_servo.pipeline.common import Level, Reply
 from sphere_servo.pipeline.params import ArmSimParams, ParameterError
-from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy, Status, StepInfo
+from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy, Status, StepInfo, TwistError
 from sphere_servo.vision.renderer import Renderer
 
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
 LEVELS = {Status.OK: Level.OK, Status.SINGULARITY: Level.WARN,
-          Status.JOINT_LIMIT: Level.WARN, Status.TIMEOUT: Level.WARN}
+          Status.JOINT_LIMIT: Level.WARN, Status.TIMEOUT: Level.WARN,
+          Status.ERROR: Level.ERROR}
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,7 @@ class CommandOutcome:
 
     valid: bool
     frame: SimFrame | None = None
+    refusal: str = ''  # why the twist was refused ('' if valid)
 
 
 def sim_camera(p: ArmSimParams) -> CameraIntrinsics:
@@ -155,16 +157,15 @@ class ArmSimCore:
     # --- command and time -----------------------------------------------------------
     def on_command(self, v_c) -> CommandOutcome:
         """Take a camera twist (6,); in lockstep, step one period and return its frame."""
-        v_c = np.asarray(v_c, dtype=float)
-        valid = bool(v_c.shape == (6,) and np.all(np.isfinite(v_c)))
-        if valid:
-            self.arm.command(v_c)
+        refusal = ''
+        try:  # the arm refuses a non-finite or unphysical twist and stops at once
+            self.arm.command(np.asarray(v_c, dtype=float))
+        except TwistError as exc:
+            refusal = str(exc)
         if not self.lockstep:
-            return CommandOutcome(valid)
-        self.waiting = False
-        if not valid:  # hold still for this period; the loop gets its image
-            self.arm.command(np.zeros(6))
-        return CommandOutcome(valid, self.advance())
+            return CommandOutcome(not refusal, refusal=refusal)
+        self.waiting = False  # a refused command still steps: the loop gets its image
+        return CommandOutcome(not refusal, self.advance(), refusal)
 
     def on_tick(self) -> SimFrame:
         """Step one period under the last command (realtime) and return the frame."""

@@ -103,7 +103,7 @@ class ArmSim(Node):
         v = twist_to_array(msg)
         out = self.core.on_command(v)
         if not out.valid:
-            self.get_logger().warn(f'ignoring a non-finite camera twist {v.tolist()}',
+            self.get_logger().warn(f'camera twist refused, arm stopped: {out.refusal}',
                                    throttle_duration_sec=1.0)
         if out.frame is not None:
             self._publish(out.frame)
