@@ -8,10 +8,10 @@ a veth pair with one end in each (``veth-a`` ↔ ``veth-b``), addresses ``10.213
 a namespace (``ip netns exec``), ``cut()`` / ``restore()`` take the link down and up,
 ``rx_bytes(host)`` counts what the host's veth end (or another device) received. Each host
 also gets a default route through the veth, as a LAN host has: DDS discovery multicasts, and
-multicast needs a route. On exit, even after a failure or Ctrl-C, it kills the processes it
-started and deletes both namespaces (which deletes the veth pair). Leftovers of a run that
-was killed before it could clean up are removed on entry: namespaces of this domain, and of
-any domain whose lock no test holds (conftest's lock files).
+multicast needs a route. On exit, even after a failure or Ctrl-C, it stops the processes it
+started (SIGINT, then SIGKILL) and deletes both namespaces (which deletes the veth pair).
+Leftovers of a run that was killed before it could clean up are removed on entry: namespaces
+of this domain, of any domain whose lock no test holds (conftest's lock files), and probes.
 
 Each namespace has its own interfaces and routes but shares the rest of the machine (files,
 ``/dev/shm``, the clock, the hostname). Fast DDS tells hosts apart by a host id hashed from
@@ -35,12 +35,18 @@ import re
 import shutil
 import signal
 import subprocess
+import time
 
 from conftest import LOCK_DIR
+
+from sphere_servo.bringup.processes import interrupt
 
 NAME = re.compile(r'^ssv(\d+)[ab]$')
 PROBE = re.compile(r'^ssvprobe(\d+)$')  # named after the pid of the process that probes
 IP_TIMEOUT = 20.0
+# processes are stopped as Ctrl-C does first: a DDS participant that exits removes its
+# shared-memory segment (32 MiB with the profile), one killed outright leaves it in /dev/shm
+STOP_TIMEOUT = 5.0
 
 
 @dataclass(frozen=True)
@@ -81,13 +87,17 @@ def namespaces_unavailable() -> str | None:
 
 
 def _kill_and_delete(netns: str) -> None:
-    """Kill every process inside ``netns``, then delete it (a namespace with processes stays)."""
-    pids = _ip('netns', 'pids', netns, check=False).stdout.split()
-    for pid in pids:
-        try:
-            os.kill(int(pid), signal.SIGKILL)
-        except (ProcessLookupError, ValueError):
-            pass
+    """Stop every process inside ``netns``, then delete it (a namespace with processes stays)."""
+    pids = [int(p) for p in _ip('netns', 'pids', netns, check=False).stdout.split()]
+    for sig, grace in ((signal.SIGINT, STOP_TIMEOUT), (signal.SIGKILL, 0.0)):
+        for pid in pids:
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + grace
+        while time.monotonic() < deadline and any(Path(f'/proc/{p}').exists() for p in pids):
+            time.sleep(0.05)
     _ip('netns', 'del', netns, check=False)
 
 
@@ -154,18 +164,13 @@ class TwoHosts:
     def close(self) -> None:
         """Stop the processes started here and delete both namespaces (and so the veth pair)."""
         for p in self.procs:
-            if p.poll() is None:
-                p.kill()
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                pass
+            interrupt(p, STOP_TIMEOUT)
         for h in (self.a, self.b):
             if h.netns in namespaces():
                 _kill_and_delete(h.netns)
 
     def popen(self, host: Host, cmd: list[str], env: dict, **kwargs) -> subprocess.Popen:
-        """Start ``cmd`` inside ``host``'s namespace with exactly ``env``; killed on exit."""
+        """Start ``cmd`` inside ``host``'s namespace with exactly ``env``; stopped on exit."""
         p = subprocess.Popen(['ip', 'netns', 'exec', host.netns, *cmd], env=env, **kwargs)
         self.procs.append(p)
         return p

@@ -23,6 +23,7 @@ from benchmarks.hop import hop_env
 from conftest import _acquire_domain_id, REPO
 import pytest
 
+from sphere_servo.bringup.processes import interrupt
 from sphere_servo.pipeline.config import package_prefix
 from sphere_servo.pipeline.middleware import (middleware_env, profile_env, profile_path,
                                               PROFILE_VARIABLES, RMW)
@@ -142,9 +143,8 @@ def _segments_while_publishing(env: dict) -> set[int]:
         assert pub.returncode == 0, pub.stdout.read()
         return seen
     finally:
-        for p in (pub, sub):
-            p.kill()
-            p.wait()
+        for p in (pub, sub):  # as Ctrl-C: a killed participant leaves its segment behind
+            interrupt(p)
 
 
 @pytest.mark.ros
