@@ -14,7 +14,7 @@ import importlib
 import sys
 import traceback
 
-AREAS = ('core', 'vision', 'arm', 'bag', 'loop', 'paper')
+AREAS = ('core', 'vision', 'arm', 'bag', 'loop', 'transport', 'paper')
 
 
 def _fmt(x) -> str:
