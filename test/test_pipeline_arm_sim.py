@@ -112,3 +112,30 @@ def test_joint_limit_status_and_values(lockstep):
     assert list(vals) == ['joints', 'sigma_min', 'scale', 'sim_time', 'detail']
     assert vals['joints'] == 'wrist_3_joint' and vals['sim_time'] == f'{f.t:.6f}'
     assert vals['detail'] == 'wrist_3_joint at position limit'
+
+
+def test_a_twist_in_another_frame_is_refused(lockstep):
+    """
+    A twist whose frame is not camera_optical_frame is not executed.
+
+    In lockstep the period passes with the arm held still (the loop goes on), and the
+    frame's status says why (WARN); in realtime the last valid command stays.
+    """
+    sim = ArmSimCore(lockstep)
+    moved = sim.on_command([0.02, 0.0, 0.03, 0.0, 0.0, 0.1]).frame
+    out = sim.on_command([0.02, 0.0, 0.03, 0.0, 0.0, 0.1], 'tool0')
+    assert not out.valid and "frame 'tool0'" in out.reason
+    assert "takes twists in 'camera_optical_frame' only" in out.reason
+    assert out.frame.t == pytest.approx(moved.t + DT, abs=1e-12)
+    np.testing.assert_array_equal(out.frame.q, moved.q)
+    assert not np.any(out.frame.qdot)
+    st = out.frame.status()
+    assert st.state is Status.OK and st.level is Level.WARN
+    assert st.values['command_error'] == out.reason
+    fine = sim.on_command(np.zeros(6), 'camera_optical_frame').frame
+    assert fine.level is Level.OK and 'command_error' not in fine.status_values()
+    rt = ArmSimCore(lockstep.replace({'clock_mode': 'realtime'}))
+    rt.on_command([0.0, 0.0, 0.05, 0.0, 0.0, 0.0])
+    assert not rt.on_command([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], '').valid
+    first = rt.on_tick()
+    assert first.qdot @ rt.arm.camera_jacobian()[2] > 0  # still the valid +z command
