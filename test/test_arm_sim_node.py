@@ -20,7 +20,7 @@ from sphere_servo.ros.conversions import se3_from_pose, twist_from_array  # noqa
 from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-CONFIG = str(REPO / 'config' / 'arm_sim.yaml')
+CONFIG = str(REPO / 'config' / 'params' / 'arm_sim.yaml')
 DT = 1.0 / 30.0
 WAIT = 20.0  # generous bound on any single wait (a loaded CI machine); never asserted on
 
@@ -113,7 +113,7 @@ def test_translation_and_rotation_in_lockstep(launch, probe):
     assert res.success
     assert probe.spin(WAIT, until=lambda: len(probe.images) > n and
                       probe.poses[-1].header.stamp == probe.images[-1].header.stamp)
-    oMc_des = pose_from_xyz_rpy([0, 0, 0.45], [0, 0, 0]).inverse()  # config/arm_sim.yaml
+    oMc_des = pose_from_xyz_rpy([0, 0, 0.45], [0, 0, 0]).inverse()  # config/params/arm_sim.yaml
     assert np.allclose(probe.oMc().homogeneous, oMc_des.homogeneous, atol=1e-5)
     # the reply names the stamp of the first image at the new pose
     assert float(res.message.rsplit(' ', 1)[-1]) == pytest.approx(

@@ -21,7 +21,7 @@ from sphere_servo.bringup.supervisor import Supervisor
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import special_sphere
 from sphere_servo.experiments.scenarios import CMO_DESIRED
-from sphere_servo.pipeline.config import find_config, load_config, node_params
+from sphere_servo.pipeline.config import scenario
 from sphere_servo.pipeline.servo import ServoState
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, header,
                                           image_from_array, se3_from_pose)
@@ -37,8 +37,7 @@ def stamp(msg) -> float:
 
 
 def desired_cMo(config_name: str) -> pin.SE3:
-    cfg = load_config(find_config(config_name))
-    d = node_params(cfg, 'arm_sim')['desired_cMo']
+    d = scenario(config_name).node_params('arm_sim')['desired_cMo']
     return pose_from_xyz_rpy(d[:3], d[3:])
 
 
@@ -91,8 +90,7 @@ def test_full_loop_converges(config, ideal, launch, test_node):
     # twists follow the images in order. (The exact header chain image → measurement →
     # features → twist is asserted node by node below; this observer may miss messages on a
     # loaded machine, so it does not match sets here.)
-    period = 1.0 / node_params(load_config(find_config(config)),
-                               'arm_sim').get('camera_rate', 30.0)
+    period = 1.0 / scenario(config).node_params('arm_sim').get('camera_rate', 30.0)
     for msgs in (topics.meas, topics.twists):
         k = (np.array([stamp(m) for m in msgs]) - 1.0) / period  # sim time starts at 1 s
         assert np.allclose(k, np.round(k), atol=1e-6), 'a stamp that is not a frame time'
@@ -323,8 +321,8 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
     the loop resumes and converges.
     """
     import time
-    cfg = load_config(find_config('special_sphere'))
-    timeout = node_params(cfg, 'servo')['timeout']
+    cfg = scenario('special_sphere')
+    timeout = cfg.node_params('servo')['timeout']
     out = open(tmp_path / 'launch.log', 'w')
     run = Launcher(cfg, out=out, env=ros_env)
     sup = None

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from sphere_servo.bringup.processes import LaunchError
-from sphere_servo.pipeline.config import node_params
+from sphere_servo.pipeline.config import Scenario
 from sphere_servo.pipeline.servo import ServoState
 
 HISTORY_DEPTH = 1000  # the supervisor's subscriptions to the per-frame topics
@@ -27,19 +27,27 @@ class Supervisor:
     an unknown one) and, if asked, collects the time histories for the figures.
     """
 
-    def __init__(self, config: dict, collect: bool = False, domain_id: int | None = None):
+    def __init__(self, sc: Scenario, collect: bool = False, domain_id: int | None = None,
+                 stop=lambda: False):
+        """
+        Subscribe and make the service clients.
+
+        ``stop()`` true: the next :meth:`spin` or :meth:`wait` raises KeyboardInterrupt
+        (between two callbacks, never inside one).
+        """
         import rclpy
         from diagnostic_msgs.msg import DiagnosticStatus
         from geometry_msgs.msg import PoseStamped, TwistStamped
         from sensor_msgs.msg import JointState
 
         self.rclpy = rclpy
+        self.stop = stop
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=domain_id)
         self.node = rclpy.create_node('launcher', context=self.ctx)
         self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
-        self.config = config
+        self.scenario = sc
         self.state: ServoState | None = None
         self.state_values: dict[str, str] = {}
         self.poses: list = []          # (stamp, oMc 4×4)
@@ -59,7 +67,7 @@ class Supervisor:
         self._clients: dict = {}
         self.recent_poses = collections.deque(maxlen=HISTORY_DEPTH)  # (stamp, oMc)
         self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
-        fset = node_params(config, 'servo').get('feature_set', 's_n')
+        fset = sc.node_params('servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
         # deep histories: under load Fast DDS repairs what loaded sockets dropped in bursts of
         # up to seconds of messages, which a shallow keep-last history would mostly discard
@@ -160,10 +168,15 @@ class Supervisor:
             [tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y,
              tw.angular.z])))
 
+    def _spin_once(self, timeout: float) -> None:
+        if self.stop():
+            raise KeyboardInterrupt
+        self.executor.spin_once(timeout_sec=timeout)
+
     def spin(self, seconds: float) -> None:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+            self._spin_once(min(0.02, max(0.0, end - time.monotonic())))
 
     def wait(self, pred, timeout: float, alive=lambda: True) -> bool:
         end = time.monotonic() + timeout
@@ -172,7 +185,7 @@ class Supervisor:
                 return True
             if not alive():
                 return False
-            self.executor.spin_once(timeout_sec=0.02)
+            self._spin_once(0.02)
         return bool(pred())
 
     def call(self, service: str, timeout: float = 30.0, enable: bool | None = None):
@@ -232,7 +245,7 @@ class Supervisor:
         """
         from sphere_servo.sim.arm import pose_from_xyz_rpy
         cMo_d = pose_from_xyz_rpy(*np.split(np.asarray(
-            node_params(self.config, 'arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
+            self.scenario.node_params('arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
             float), 2))
         res = self.call('/arm_sim/go_desired')
         if not res.success:
