@@ -1,19 +1,26 @@
 """
-Params files and scenarios, without DDS.
+Params files, scenarios, the launch file and the declared dependencies, without DDS.
 
 The shipped params files are plain ROS 2 params files naming only declared parameters; a
 scenario's merged parameters are what rcl itself reads from the same files given as
-several ``--params-file`` (checked against rclpy's parser).
+several ``--params-file`` (checked against rclpy's parser); the launch file compiles and
+starts the scenario's nodes with its params files; every third-party module the package
+imports is declared in package.xml and setup.py.
 """
 from __future__ import annotations
 
+import ast
 from pathlib import Path
+import re
+import sys
+import xml.etree.ElementTree as ET
 
 from conftest import _acquire_domain_id
 import pytest
 from sphere_servo.pipeline.config import (check_params_file, ConfigError, load_node_params,
                                           load_scenario, read_yaml, scenario, section)
 from sphere_servo.pipeline.params import NODE_PARAMS, ParameterError
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = sorted((REPO / 'config' / 'params').glob('*.yaml'))
@@ -117,3 +124,77 @@ def test_a_scenario_by_name_and_params_by_scenario_or_file():
         scenario('nope')
     with pytest.raises(ParameterError):  # the servo would refuse it: so would the launcher
         NODE_PARAMS['servo'].from_mapping({'r_hat': 0.0})
+
+
+def _launch_tree() -> ast.Module:
+    return ast.parse((REPO / 'launch' / 'sphere_servo.launch.py').read_text())
+
+
+def test_the_launch_file_starts_the_scenarios_nodes_with_its_params_files():
+    """No ``launch`` package here: the file's structure, read with ast."""
+    tree = _launch_tree()
+    compile(tree, 'sphere_servo.launch.py', 'exec')
+    imports = {(n.module, a.name) for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+               for a in n.names}
+    assert ('sphere_servo.pipeline.config', 'scenario') in imports  # the launcher's reader
+    funcs = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+    assert 'generate_launch_description' in funcs
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
+    node = next(c for c in calls if getattr(c.func, 'id', '') == 'Node')
+    kw = {k.arg: k.value for k in node.keywords}
+    assert ast.literal_eval(kw['package']) == 'sphere_servo'
+    assert ast.unparse(kw['executable']) == 'name' == ast.unparse(kw['name'])
+    assert 'sc.params_files' in ast.unparse(kw['parameters'])
+    loops = [ast.unparse(c.iter) for n in ast.walk(tree) if isinstance(n, ast.ListComp)
+             for c in n.generators if node is n.elt]
+    assert loops == ['sc.nodes']  # one Node per node of the scenario
+    default = {t.id: n.value for n in tree.body if isinstance(n, ast.Assign)
+               for t in n.targets if isinstance(t, ast.Name)}['DEFAULT_SCENARIO']
+    assert load_scenario(REPO / 'config' / 'scenarios' / f'{ast.literal_eval(default)}.yaml')
+
+
+PYPI = {'numpy': 'numpy', 'cv2': 'opencv-python-headless', 'pinocchio': 'pin',
+        'yaml': 'PyYAML', 'matplotlib': 'matplotlib', 'rosbags': 'rosbags', 'PIL': 'pillow'}
+ROSDEP = {'numpy': 'python3-numpy', 'cv2': 'python3-opencv', 'pinocchio': 'pinocchio',
+          'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib',
+          'rosbags': 'python3-rosbags-pip', 'PIL': 'python3-pil'}
+
+
+def _third_party_imports() -> set[str]:
+    mods = set()
+    for p in [*(REPO / 'sphere_servo').rglob('*.py'), REPO / 'launch' / 'sphere_servo.launch.py']:
+        for n in ast.walk(ast.parse(p.read_text())):
+            if isinstance(n, ast.Import):
+                mods |= {a.name.split('.')[0] for a in n.names}
+            elif isinstance(n, ast.ImportFrom) and n.level == 0 and n.module:
+                mods.add(n.module.split('.')[0])
+    return mods - set(sys.stdlib_module_names) - {'sphere_servo'}
+
+
+def test_every_runtime_dependency_is_declared():
+    """package.xml (rosdep keys), setup.py (PyPI names) and the package's own rosdep file."""
+    depends = {e.text for e in ET.parse(REPO / 'package.xml').getroot().iter('exec_depend')}
+    setup = ast.parse((REPO / 'setup.py').read_text())
+    call = next(n for n in ast.walk(setup) if isinstance(n, ast.Call)
+                and getattr(n.func, 'id', '') == 'setup')
+    requires = ast.literal_eval(next(k.value for k in call.keywords
+                                     if k.arg == 'install_requires'))
+    for mod in sorted(_third_party_imports()):
+        if mod in PYPI:
+            assert PYPI[mod] in requires and ROSDEP[mod] in depends, mod
+        else:  # a ROS package: its own name is its rosdep key
+            assert mod in depends, mod
+    # example-robot-data ships the UR5 URDF (data, not imported)
+    assert 'example-robot-data' in requires
+    assert 'python3-example-robot-data-pip' in depends
+    own = yaml.safe_load((REPO / 'rosdep' / 'sphere_servo.yaml').read_text())
+    pip_keys = sorted(d for d in depends if d.endswith('-pip'))
+    assert pip_keys == sorted(own)
+    for key in pip_keys:
+        for os_name in ('ubuntu', 'debian'):
+            (pkg,) = own[key][os_name]['pip']['packages']
+            assert pkg in requires, (key, pkg)
+    pinned = {re.split('[=<>]', line)[0].lower() for line in
+              (REPO / 'requirements.txt').read_text().splitlines()
+              if line and not line.startswith('#')}
+    assert {r.lower() for r in requires} - {'setuptools'} <= pinned

@@ -7,14 +7,18 @@ The ROS interface a Jazzy user plugs into (issue 13), over DDS with the installe
   enum), on change and once a second, and each node's ``~/state`` carries the header of
   the image it answers;
 - a late subscriber to ``features/<set>/desired`` (transient-local) gets the desired, with
-  the taught image's header, and so does a servo started after the teach.
+  the taught image's header, and so does a servo started after the teach;
+- the launch file is installed and names a scenario whose params files are installed.
 
 The loop converging with TwistStamped commands and a wrong frame being refused are in
 test_loop.py and test_arm_sim_node.py.
 """
 from __future__ import annotations
 
+import ast
 from pathlib import Path
+import subprocess
+import sys
 
 from conftest import executable_path, REPO
 import numpy as np
@@ -173,3 +177,36 @@ def test_a_late_subscriber_gets_the_desired_with_the_taught_image_header(launch,
     assert spin(30.0, until=holds), servo.log()
     assert 'desired features of the image stamped 1.700000000' in servo.log()
     assert servo.stop() == 0 and feat.stop() == 0
+
+
+def test_the_launch_file_is_installed_with_the_files_it_names(ros_env):
+    """
+    Check the installed launch file without ``launch`` (not on PyPI here).
+
+    It compiles, and the scenarios it reads (its default among them), with the launcher's
+    reader in the install space, name installed params files and installed executables.
+    """
+    root = share(ros_env)
+    path = root / 'launch' / 'sphere_servo.launch.py'
+    assert path.is_file()
+    tree = ast.parse(path.read_text())
+    compile(tree, str(path), 'exec')
+    default = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
+                   and any(getattr(t, 'id', '') == 'DEFAULT_SCENARIO' for t in n.targets))
+    code = ('import sys\nfrom sphere_servo.pipeline.config import scenario\n'
+            'for name in sys.argv[1:]:\n    sc = scenario(name)\n'
+            '    print(sc.path, *sc.nodes, *sc.params_files)\n')
+    names = sorted(p.stem for p in (root / 'config' / 'scenarios').glob('*.yaml'))
+    assert default in names and len(names) == 5
+    out = subprocess.run([sys.executable, '-c', code, *names], env=ros_env,
+                         capture_output=True, text=True, timeout=60, cwd='/')
+    assert out.returncode == 0, out.stderr
+    lib = Path(executable_path(ros_env, 'arm_sim')).parent
+    for line in out.stdout.splitlines():
+        sc_path, *rest = line.split()
+        assert Path(sc_path).parent == root / 'config' / 'scenarios'
+        nodes = [r for r in rest if '/' not in r]
+        files = [Path(r) for r in rest if '/' in r]
+        assert nodes == list(NODES) and all((lib / n).is_file() for n in nodes)
+        assert files and all(f.parent == root / 'config' / 'params' and f.is_file()
+                             for f in files), line
