@@ -11,10 +11,15 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/config/params', glob('config/params/*.yaml')),
+        ('share/' + package_name + '/config/scenarios', glob('config/scenarios/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        ('share/' + package_name + '/rosdep', glob('rosdep/*.yaml')),
         ('share/' + package_name + '/config', glob('config/fastdds*.xml')),
     ],
-    install_requires=['setuptools', 'numpy', 'pyyaml'],
+    # the runtime libraries, by their PyPI names (package.xml names their rosdep keys)
+    install_requires=['setuptools', 'backports.zstd', 'example-robot-data', 'lz4', 'matplotlib',
+                      'numpy', 'opencv-python-headless', 'pillow', 'pin', 'PyYAML', 'rosbags'],
     zip_safe=True,
     maintainer='sphere_servo developers',
     maintainer_email='sphere-servo@example.com',

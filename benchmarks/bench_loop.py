@@ -9,7 +9,7 @@ wall clock at publish time, at a set rate; ``detector``, ``features`` and ``serv
 separate processes (``python -m``), and this process listens. Figures:
 
 - pipeline latency: image stamp → twist publication (the servo's ``image_age`` in
-  ``servo/state``, on its wall clock right after it published the twist: three processes,
+  ``/servo/state``, on its wall clock right after it published the twist: three processes,
   three DDS hops), median — the issue's figure; and, stricter, twist *arrival* in this
   (fourth) process − image stamp (four hops);
 - baseline, measured beside it: the bare two-process Image latency, image arrival in this
@@ -76,7 +76,7 @@ def _rss_mb(pid: int) -> float:
 
 def _run(rate: float, seconds: float) -> dict:
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticStatus
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TwistStamped
     from rclpy.node import Node
     from sensor_msgs.msg import Image
@@ -109,15 +109,18 @@ def _run(rate: float, seconds: float) -> dict:
                              lambda m: img_lat.append(now() - t_of(m.header)), 10)
 
     def on_tw(m):
+        if t_of(m.header) == 0.0:  # the watchdog's: it answers no image
+            return
         tw_stamps.append(t_of(m.header))
         tw_lat.append(now() - t_of(m.header))
-    node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', on_tw, 100)
+    node.create_subscription(TwistStamped, 'camera/cmd_vel', on_tw, 100)
 
     def on_state(m):
-        age = {kv.key: kv.value for kv in m.values}.get('image_age')
-        if m.message == 'servoing' and age is not None:
+        st = m.status[0]
+        age = {kv.key: kv.value for kv in st.values}.get('image_age')
+        if st.message == 'servoing' and age is not None:
             pub_lat.append(float(age))
-    node.create_subscription(DiagnosticStatus, 'servo/state', on_state, 100)
+    node.create_subscription(DiagnosticArray, 'servo/state', on_state, 100)
     teach = node.create_client(Trigger, '/features/teach')
     enable = node.create_client(SetBool, '/servo/enable')
     rss = {}

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from conftest import executable_path, wait_for
-from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -21,7 +21,7 @@ from sphere_servo.bringup.supervisor import Supervisor
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import special_sphere
 from sphere_servo.experiments.scenarios import CMO_DESIRED
-from sphere_servo.pipeline.config import find_config, load_config, node_params
+from sphere_servo.pipeline.config import scenario
 from sphere_servo.pipeline.servo import ServoState
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, header,
                                           image_from_array, se3_from_pose)
@@ -37,8 +37,7 @@ def stamp(msg) -> float:
 
 
 def desired_cMo(config_name: str) -> pin.SE3:
-    cfg = load_config(find_config(config_name))
-    d = node_params(cfg, 'arm_sim')['desired_cMo']
+    d = scenario(config_name).node_params('arm_sim')['desired_cMo']
     return pose_from_xyz_rpy(d[:3], d[3:])
 
 
@@ -49,7 +48,7 @@ class Topics:
         self.poses, self.twists, self.meas = [], [], []
         node.create_subscription(PoseStamped, 'ground_truth/camera_pose',
                                  lambda m: self.poses.append(m), 1000)
-        node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped',
+        node.create_subscription(TwistStamped, 'camera/cmd_vel',
                                  lambda m: self.twists.append(m), 1000)
         node.create_subscription(JointState, 'detector/measurement',
                                  lambda m: self.meas.append(m), 1000)
@@ -69,6 +68,11 @@ def test_full_loop_converges(config, ideal, launch, test_node):
     assert 'converged after' in log
     # every node stopped cleanly (the launcher reports non-zero exit codes)
     assert 'exit codes:' not in log, log[-2000:]
+    # the commands are camera twists, stamped: those that answer an image carry its stamp,
+    # the watchdog's a zero one; all of them in the camera optical frame
+    assert topics.twists and {t.header.frame_id for t in topics.twists} == {
+        'camera_optical_frame'}
+    topics.twists = [t for t in topics.twists if stamp(t) > 0]
     cMo_final = se3_from_pose(topics.poses[-1].pose).inverse()
     cdMc = desired_cMo(config) * cMo_final.inverse()
     t_err = float(np.linalg.norm(cdMc.translation))
@@ -91,8 +95,7 @@ def test_full_loop_converges(config, ideal, launch, test_node):
     # twists follow the images in order. (The exact header chain image → measurement →
     # features → twist is asserted node by node below; this observer may miss messages on a
     # loaded machine, so it does not match sets here.)
-    period = 1.0 / node_params(load_config(find_config(config)),
-                               'arm_sim').get('camera_rate', 30.0)
+    period = 1.0 / scenario(config).node_params('arm_sim').get('camera_rate', 30.0)
     for msgs in (topics.meas, topics.twists):
         k = (np.array([stamp(m) for m in msgs]) - 1.0) / period  # sim time starts at 1 s
         assert np.allclose(k, np.round(k), atol=1e-6), 'a stamp that is not a frame time'
@@ -196,24 +199,31 @@ def test_servo_safety(launch, test_node):
     Send a zero twist whenever the servo cannot servo.
 
     That is: when waiting, when the target is lost, on a malformed or NaN input, when only
-    late images come for longer than ``timeout``, and as the last word on Ctrl-C; a late
-    image is not answered; a real twist carries the image stamp and its age in servo/state.
+    late images come for longer than ``timeout``, before a desired, and as the last word on
+    Ctrl-C; a late image is not answered; a real twist carries the image stamp and its age
+    in servo/state.
     """
-    from diagnostic_msgs.msg import DiagnosticStatus
-    from sphere_servo.ros.vectors import features_msg
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sphere_servo.ros.vectors import DESIRED_QOS, features_msg
     node, spin = test_node
     twists, stamped, states = [], [], []
-    subs = [node.create_subscription(Twist, 'camera/cmd_vel', twists.append, 50),
-            node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append,
-                                     50),
-            node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 100)]
+
+    def on_twist(m):  # all of them, and those that answer an image (a non-zero stamp)
+        twists.append(m)
+        if stamp(m) > 0:
+            stamped.append(m)
+    subs = [node.create_subscription(TwistStamped, 'camera/cmd_vel', on_twist, 50),
+            node.create_subscription(DiagnosticArray, 'servo/state',
+                                     lambda m: states.append(m.status[0]), 100)]
     pub = node.create_publisher(JointState, 'features/s_n', 10)
+    pub_desired = node.create_publisher(JointState, 'features/s_n/desired', DESIRED_QOS)
     proc = launch('servo', '--ros-args', '-p', 'timeout:=0.3', '-p', 'max_image_age:=0.5')
     # every topic matched both ways before the first features (volatile: nothing is resent)
     assert spin(20.0, until=lambda: pub.get_subscription_count() > 0 and all(
         sub.get_publisher_count() > 0 for sub in subs)), proc.log()
     assert spin(20.0, until=lambda: len(twists) > 3), proc.log()  # waiting: zeros
-    assert all(_norm(t) == 0 for t in twists)
+    assert all(_norm(t.twist) == 0 for t in twists)
+    assert all(stamp(t) == 0 and t.header.frame_id == 'camera_optical_frame' for t in twists)
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
 
@@ -222,8 +232,18 @@ def test_servo_safety(launch, test_node):
 
     def at(m, t) -> bool:  # stamps near 1.8e9 s do not round-trip through float exactly
         return abs(stamp(m) - t) < 1e-6
-    t_ok = now()
-    pub.publish(features_msg('s_n', header(t_ok, 'cam'), s, s_star))
+    t_early = now()  # features before any desired: a zero twist, and the servo says why
+    pub.publish(features_msg('s_n', header(t_early, 'cam'), s))
+    assert spin(5.0, until=lambda: any(at(m, t_early) for m in stamped)), proc.log()
+    assert _norm([m for m in stamped if at(m, t_early)][0].twist) == 0
+    assert spin(5.0, until=lambda: any(m.message == ServoState.NO_DESIRED.value
+                                       for m in states))
+    assert 'state: no desired (no desired features yet)' in proc.log()
+    pub_desired.publish(features_msg('s_n', header(1.0, 'cam'), s_star))
+    assert spin(5.0, until=lambda: 'desired features of the image stamped 1.000000000'
+                in proc.log()), proc.log()
+    t_ok = max(now(), t_early + 0.001)
+    pub.publish(features_msg('s_n', header(t_ok, 'cam'), s))
     assert spin(5.0, until=lambda: any(at(m, t_ok) for m in stamped)), proc.log()
     moving = [m for m in stamped if at(m, t_ok)][0]
     assert _norm(moving.twist) > 0
@@ -232,7 +252,7 @@ def test_servo_safety(launch, test_node):
     age = float({kv.key: kv.value for kv in state.values}['image_age'])
     assert 0.0 <= age < 0.5, age
     cases = [lambda t: features_msg('s_n', header(t, 'cam')),                   # lost
-             lambda t: features_msg('s_n', header(t, 'cam'), s * np.nan, s_star),  # NaN
+             lambda t: features_msg('s_n', header(t, 'cam'), s * np.nan),          # NaN
              lambda t: JointState(header=header(t, 'cam'), name=['x'], position=[1.0])]
     for make in cases:
         t = max(now(), max(stamp(m) for m in stamped) + 0.001)  # fresh and not a repeat
@@ -247,18 +267,18 @@ def test_servo_safety(launch, test_node):
     twists.clear()
     t_late = now()
     for k in range(8):
-        pub.publish(features_msg('s_n', header(t_late - 2.0 + 0.01 * k, 'cam'), s, s_star))
+        pub.publish(features_msg('s_n', header(t_late - 2.0 + 0.01 * k, 'cam'), s))
         spin(0.1)
     assert not [m for m in stamped if stamp(m) < t_late - 1.0], 'a late image was answered'
     assert 'skipping features of an image' in proc.log()
     assert any(m.message == ServoState.STALE.value for m in states[-5:]), [
         m.message for m in states[-5:]]
-    assert twists and all(_norm(t) == 0 for t in twists)
+    assert twists and all(_norm(t.twist) == 0 for t in twists)
     twists.clear()
     assert proc.stop() == 0
     spin(0.5)
-    assert twists and _norm(twists[-1]) == 0  # the last word is a zero twist
-    assert 'nan' not in ''.join(str(t) for t in twists).lower()
+    assert twists and _norm(twists[-1].twist) == 0  # the last word is a zero twist
+    assert 'nan' not in ''.join(str(t.twist) for t in twists).lower()
 
 
 def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
@@ -271,11 +291,13 @@ def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
     """
     from rosgraph_msgs.msg import Clock
     from sphere_servo.ros.conversions import stamp_from_seconds
-    from sphere_servo.ros.vectors import features_msg
+    from sphere_servo.ros.vectors import DESIRED_QOS, features_msg
     node, spin = test_node
     stamped = []
-    node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append, 50)
+    node.create_subscription(TwistStamped, 'camera/cmd_vel',
+                             lambda m: stamped.append(m) if stamp(m) > 0 else None, 50)
     pub = node.create_publisher(JointState, 'features/s_n', 10)
+    pub_desired = node.create_publisher(JointState, 'features/s_n/desired', DESIRED_QOS)
     clock = node.create_publisher(Clock, '/clock', 10)
     proc = launch('servo', '--ros-args', '-p', 'use_sim_time:=true', '-p',
                   'max_image_age:=0.0', '-p', 'timeout:=5.0')
@@ -284,21 +306,23 @@ def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
     frame = 1.0 / 30.0
+    pub_desired.publish(features_msg('s_n', header(9.0, 'cam'), s_star))
+    assert spin(10.0, until=lambda: 'desired features of the image stamped' in proc.log())
 
     def at(t):  # the simulator at frame t: its clock, then the features of that frame
         for _ in range(3):
             clock.publish(Clock(clock=stamp_from_seconds(t)))
             spin(0.05)
-        pub.publish(features_msg('s_n', header(t, 'cam'), s, s_star))
+        pub.publish(features_msg('s_n', header(t, 'cam'), s))
 
     at(10.0)
     assert spin(5.0, until=lambda: [stamp(m) for m in stamped] == [10.0]), proc.log()
     clock.publish(Clock(clock=stamp_from_seconds(10.0 + frame)))
     spin(0.2)
-    pub.publish(features_msg('s_n', header(10.0 - frame, 'cam'), s, s_star))  # superseded
+    pub.publish(features_msg('s_n', header(10.0 - frame, 'cam'), s))  # superseded
     at(10.0 + frame)
     assert spin(5.0, until=lambda: len(stamped) == 2), proc.log()
-    pub.publish(features_msg('s_n', header(10.0 + frame, 'cam'), s, s_star))  # a repeat
+    pub.publish(features_msg('s_n', header(10.0 + frame, 'cam'), s))  # a repeat
     spin(1.0)
     assert [round(stamp(m), 4) for m in stamped] == [10.0, round(10.0 + frame, 4)], \
         proc.log()
@@ -323,8 +347,8 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
     the loop resumes and converges.
     """
     import time
-    cfg = load_config(find_config('special_sphere'))
-    timeout = node_params(cfg, 'servo')['timeout']
+    cfg = scenario('special_sphere')
+    timeout = cfg.node_params('servo')['timeout']
     out = open(tmp_path / 'launch.log', 'w')
     run = Launcher(cfg, out=out, env=ros_env)
     sup = None
@@ -332,8 +356,8 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
         run.start()
         sup = Supervisor(cfg, domain_id=int(ros_env['ROS_DOMAIN_ID']))
         twists, joints = [], []
-        sup.node.create_subscription(Twist, 'camera/cmd_vel',
-                                     lambda m: twists.append((time.monotonic(), m)), 50)
+        sup.node.create_subscription(TwistStamped, 'camera/cmd_vel',
+                                     lambda m: twists.append((time.monotonic(), m.twist)), 50)
         sup.node.create_subscription(JointState, 'joint_states',
                                      lambda m: joints.append((time.monotonic(), m)), 50)
         sup.teach(lambda msg: out.write(msg + '\n'), lambda: not run.dead())
@@ -388,20 +412,22 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
 
     No output before a desired exists; ~/teach takes the latest measurement; then every
     measurement gives features stamped with its header, s − s* = 0 on the taught image; an
-    empty measurement gives an empty (target lost) features message.
+    empty measurement gives an empty (target lost) features message. The desired comes on
+    its own topic with the taught image's header; the features carry s only.
     """
     from std_srvs.srv import Trigger
-    from sphere_servo.ros.vectors import measurement_msg
+    from sphere_servo.ros.vectors import DESIRED_QOS, measurement_msg
     node, spin = test_node
-    feats = []
+    feats, desired = [], []
     node.create_subscription(JointState, 'features/s_n', feats.append, 100)
+    node.create_subscription(JointState, 'features/s_n/desired', desired.append, DESIRED_QOS)
     pub = node.create_publisher(JointState, 'detector/measurement', 10)
     proc = launch('features')
     assert spin(20.0, until=lambda: pub.get_subscription_count() > 0), proc.log()
     for t in (1.5, 1.6, 1.7):
         pub.publish(_exact_measurement(CMO_DESIRED, special_sphere(), t))
         spin(0.2)
-    assert not feats  # nothing before the desired is set
+    assert not feats and not desired  # nothing before the desired is set
     cli = node.create_client(Trigger, '/features/teach')
     assert spin(10.0, until=cli.service_is_ready)
     fut = cli.call_async(Trigger.Request())
@@ -413,8 +439,14 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
     pub.publish(measurement_msg(None, header(2.2, 'cam')))
     assert spin(10.0, until=lambda: len(feats) >= 3), proc.log()
     assert [stamp(f) for f in feats[:3]] == [2.0, 2.1, 2.2]
-    assert np.allclose(feats[0].effort, 0.0) and np.allclose(feats[0].position[:3],
-                                                             CMO_DESIRED.translation / 0.05)
+    hdr = desired[0].header
+    assert len(desired) == 1 and (hdr.stamp.sec, hdr.stamp.nanosec, hdr.frame_id) == (
+        1, 700_000_000, 'cam')
+    assert list(desired[0].name) == list(feats[0].name)
+    s_star = np.array(desired[0].position)
+    assert np.allclose(np.array(feats[0].position) - s_star, 0.0) and np.allclose(
+        feats[0].position[:3], CMO_DESIRED.translation / 0.05)
+    assert not len(feats[0].velocity) and not len(feats[0].effort)  # s only
     assert len(feats[2].name) == 0
     assert proc.stop() == 0
 
@@ -440,12 +472,20 @@ def test_features_desired_from_a_pose_in_the_parameters(launch, test_node):
     pub.publish(_exact_measurement(cMo_d, target, 2.0))
     pub.publish(_exact_measurement(CMO_DESIRED, target, 2.1))
     assert spin(10.0, until=lambda: len(feats) >= 2), proc.log()
+    # subscribed after it was published: transient-local, and no image (a zero stamp)
+    from sphere_servo.ros.vectors import DESIRED_QOS
+    desired = []
+    node.create_subscription(JointState, 'features/s_n/desired', desired.append, DESIRED_QOS)
+    assert spin(10.0, until=lambda: bool(desired)), proc.log()
+    assert (stamp(desired[0]), desired[0].header.frame_id) == (0.0, 'camera_optical_frame')
+    s_star = np.array(desired[0].position)
     at, away = feats[:2]
-    np.testing.assert_allclose(at.effort, 0.0, atol=1e-9)
-    np.testing.assert_allclose(at.velocity[:3], cMo_d.translation / target.radius, atol=1e-9)
+    np.testing.assert_allclose(np.array(at.position) - s_star, 0.0, atol=1e-9)
+    np.testing.assert_allclose(s_star[:3], cMo_d.translation / target.radius, atol=1e-9)
     e_t = (CMO_DESIRED.translation - cMo_d.translation) / target.radius
     e_r = pin.log3(cMo_d.rotation @ CMO_DESIRED.rotation.T)
-    np.testing.assert_allclose(away.effort, np.concatenate([e_t, e_r]), atol=1e-9)
+    np.testing.assert_allclose(np.array(away.position) - s_star, np.concatenate([e_t, e_r]),
+                               atol=1e-9)
     assert proc.stop() == 0
 
 
@@ -502,8 +542,9 @@ def test_colcon_recognises_an_ament_python_package():
 def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
     node, spin = test_node
     states = []
-    from diagnostic_msgs.msg import DiagnosticStatus
-    node.create_subscription(DiagnosticStatus, 'servo/state', lambda m: states.append(m), 50)
+    from diagnostic_msgs.msg import DiagnosticArray
+    node.create_subscription(DiagnosticArray, 'servo/state',
+                             lambda m: states.append(m.status[0]), 50)
     proc = launch('launcher', '--config', 'special_sphere')
     assert spin(90.0, until=lambda: any(m.message == ServoState.SERVOING.value
                                         for m in states)), proc.log()
@@ -541,10 +582,10 @@ def test_nodes_die_with_a_killed_launcher(launch, test_node, ros_env):
     The launcher has no chance to stop its nodes: each gets SIGTERM from the kernel and
     exits cleanly.
     """
-    from diagnostic_msgs.msg import DiagnosticStatus
+    from diagnostic_msgs.msg import DiagnosticArray
     node, spin = test_node
     states = []
-    node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 10)
+    node.create_subscription(DiagnosticArray, 'servo/state', states.append, 10)
     proc = launch('launcher', '--config', 'special_sphere')
     assert spin(60.0, until=lambda: bool(states)), proc.log()
 
@@ -576,8 +617,10 @@ def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
     img = Renderer(cam, special_sphere()).render(CMO_DESIRED)
     path = tmp_path / 'desired.png'
     cv2.imwrite(str(path), img[..., ::-1])
-    feats = []
+    from sphere_servo.ros.vectors import DESIRED_QOS
+    feats, desired = [], []
     node.create_subscription(JointState, 'features/s_n', feats.append, 50)
+    node.create_subscription(JointState, 'features/s_n/desired', desired.append, DESIRED_QOS)
     pub_info = node.create_publisher(CameraInfo, 'camera/camera_info', 10)
     pub = node.create_publisher(JointState, 'detector/measurement', 10)
     proc = launch('features', '--ros-args', '-p', 'desired_source:=image', '-p',
@@ -590,6 +633,9 @@ def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
         if spin(0.2, until=lambda: bool(feats)):
             break
     assert feats, proc.log()
-    assert np.allclose(feats[-1].effort, 0.0, atol=1e-9)
+    assert spin(5.0, until=lambda: bool(desired)), proc.log()
+    # an image file is not an image of the run: a zero stamp, the camera_info's frame
+    assert (stamp(desired[0]), desired[0].header.frame_id) == (0.0, 'cam')
+    assert np.allclose(np.array(feats[-1].position) - desired[0].position, 0.0, atol=1e-9)
     assert 'desired features set' in proc.log()
     assert proc.stop() == 0

@@ -54,7 +54,7 @@ def test_realtime_commands_do_not_step(lockstep):
     assert out.valid and out.frame is None and sim.frame().t == t0
     assert np.any(sim.on_tick().qdot)  # the valid command runs on the ticks
     refused = sim.on_command([np.inf] * 6)
-    assert not refused.valid and 'finite' in refused.refusal
+    assert not refused.valid and 'finite' in refused.reason
     stopped = sim.on_tick()  # a refused command stops the arm at once (issue 14, item 8)
     assert stopped.t == pytest.approx(t0 + 2 * DT) and not np.any(stopped.qdot)
 
@@ -64,7 +64,7 @@ def test_an_absurd_twist_is_refused_and_the_arm_stays_usable(lockstep, mode):
     sim = ArmSimCore(lockstep.replace({'clock_mode': mode}))
     q0 = sim.frame().q
     out = sim.on_command([1e308, 0.0, 0.0, 0.0, 0.0, 1e307])
-    assert not out.valid and out.refusal
+    assert not out.valid and out.reason
     frame = out.frame if mode == 'lockstep' else sim.on_tick()
     assert np.all(np.isfinite(frame.q)) and not np.any(frame.qdot)
     np.testing.assert_array_equal(frame.q, q0)
@@ -129,3 +129,31 @@ def test_joint_limit_status_and_values(lockstep):
     assert list(vals) == ['joints', 'sigma_min', 'scale', 'sim_time', 'detail']
     assert vals['joints'] == 'wrist_3_joint' and vals['sim_time'] == f'{f.t:.6f}'
     assert vals['detail'] == 'wrist_3_joint at position limit'
+
+
+def test_a_twist_in_another_frame_is_refused(lockstep):
+    """
+    A twist whose frame is not camera_optical_frame is not executed.
+
+    In lockstep the period passes with the arm held still (the loop goes on), and the
+    frame's status says why (WARN); in realtime the arm stops at once (issue 14, item 8).
+    """
+    sim = ArmSimCore(lockstep)
+    moved = sim.on_command([0.02, 0.0, 0.03, 0.0, 0.0, 0.1]).frame
+    out = sim.on_command([0.02, 0.0, 0.03, 0.0, 0.0, 0.1], 'tool0')
+    assert not out.valid and "frame 'tool0'" in out.reason
+    assert "takes twists in 'camera_optical_frame' only" in out.reason
+    assert out.frame.t == pytest.approx(moved.t + DT, abs=1e-12)
+    np.testing.assert_array_equal(out.frame.q, moved.q)
+    assert not np.any(out.frame.qdot)
+    st = out.frame.status()
+    assert st.state is Status.OK and st.level is Level.WARN
+    assert st.values['command_error'] == out.reason
+    fine = sim.on_command(np.zeros(6), 'camera_optical_frame').frame
+    assert fine.level is Level.OK and 'command_error' not in fine.status_values()
+    rt = ArmSimCore(lockstep.replace({'clock_mode': 'realtime'}))
+    rt.on_command([0.0, 0.0, 0.05, 0.0, 0.0, 0.0])
+    assert rt.on_tick().qdot @ rt.arm.camera_jacobian()[2] > 0  # the valid +z command runs
+    assert not rt.on_command([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], '').valid
+    first = rt.on_tick()
+    assert not np.any(first.qdot)  # the refused command stopped the arm

@@ -11,7 +11,7 @@ import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import special_sphere
-from sphere_servo.pipeline.common import Refusal
+from sphere_servo.pipeline.common import Level, Refusal
 from sphere_servo.pipeline.detector import camera_from_info, DetectorCore, DetectStatus
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.pipeline.vectors import Measurement, SPHERE_NAMES
@@ -98,3 +98,26 @@ def test_an_empty_image_is_not_found():
     out = c.on_image(**buffer(np.full((480, 640, 3), 30, np.uint8)))
     assert out.status is DetectStatus.NOT_FOUND and out.reason
     assert out.detection is not None and out.measurement == Measurement()
+
+
+def test_status_is_the_latest_outcome_with_counts():
+    """The node's status: waiting, then each image's outcome (levels OK, WARN, ERROR)."""
+    c = DetectorCore(DetectorParams.from_mapping({}))
+    st = c.status()
+    assert (st.state, st.level, st.message) == (DetectStatus.WAITING, Level.OK, 'waiting')
+    assert st.values == {'images': '0', 'found': '0', 'not_found': '0', 'rejected': '0',
+                         'camera': 'no'}
+    c.on_image(**buffer(np.zeros((480, 640, 3), np.uint8)))  # no camera yet
+    st = c.status()
+    assert (st.state, st.level) == (DetectStatus.REJECTED, Level.ERROR)
+    assert st.values['reason'] == 'no valid camera_info received yet'
+    c.on_camera_info(*info_args())
+    c.on_image(**buffer(Renderer(CAM, special_sphere()).render(CMO)))
+    st = c.status()
+    assert (st.state, st.level) == (DetectStatus.FOUND, Level.OK) and 'reason' not in st.values
+    c.on_image(**buffer(np.full((480, 640, 3), 30, np.uint8)))
+    st = c.status()
+    assert (st.state, st.level, st.message) == (DetectStatus.NOT_FOUND, Level.WARN,
+                                                'not found')
+    assert st.values == {'images': '3', 'found': '1', 'not_found': '1', 'rejected': '1',
+                         'camera': 'yes', 'reason': c.last.reason}

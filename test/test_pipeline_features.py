@@ -15,8 +15,8 @@ import pytest
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import observe
 from sphere_servo.core.targets import special_sphere
-from sphere_servo.pipeline.common import Refusal
-from sphere_servo.pipeline.features import FeaturesCore, FeaturesOutput
+from sphere_servo.pipeline.common import Level, Refusal
+from sphere_servo.pipeline.features import FeaturesCore, FeaturesOutput, FeaturesState
 from sphere_servo.pipeline.params import FeaturesParams, ParameterError
 from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.sim.arm import pose_from_xyz_rpy
@@ -140,3 +140,36 @@ def test_exact_observation_equals_the_measurement_layout():
     assert obs.sphere.r_delta == pytest.approx(ref.sphere.r_delta, abs=1e-12)
     for name in ('P1', 'P2'):
         np.testing.assert_allclose(obs.q[name], ref.q[name], atol=1e-12)
+
+
+def test_desired_features_and_the_taught_stamp():
+    """
+    Each teach sets s* of every set, from the taught image's stamp; the status follows.
+
+    States: waiting → no desired → tracking → target lost, with the stamps as values.
+    """
+    c = core(sets=['s_n', 's'])
+    st = c.status()
+    assert (st.state, st.level) == (FeaturesState.WAITING, Level.OK)
+    assert st.values == {'sets': 's_n,s', 'desired_source': 'teach'}
+    assert c.desired_features() == {} and c.desired_stamp_ns is None
+    c.on_measurement(3 * 10**9 + 7, measurement(CMO_D))
+    assert c.status().state is FeaturesState.NO_DESIRED
+    assert c.teach().success and c.desired_stamp_ns == 3 * 10**9 + 7
+    star = c.desired_features()
+    assert list(star) == ['s_n', 's']
+    np.testing.assert_allclose(star['s_n'][:3], CMO_D.translation / R, atol=1e-9)
+    np.testing.assert_allclose(star['s_n'][3:], 0.0, atol=1e-12)
+    np.testing.assert_allclose(star['s'], 0.0, atol=1e-9)  # s* = (0, 0) for the 3-D set
+    out = c.on_measurement(4 * 10**9, measurement(CMO_1))
+    np.testing.assert_array_equal(out.values['s_n'].s_star, star['s_n'])
+    st = c.status()
+    assert (st.state, st.message) == (FeaturesState.TRACKING, 'tracking')
+    assert st.values['stamp'] == '4.000000000'
+    assert st.values['desired_stamp'] == '3.000000007'
+    c.on_measurement(5 * 10**9, Measurement())
+    st = c.status()
+    assert (st.state, st.level) == (FeaturesState.TARGET_LOST, Level.WARN)
+    assert st.values['reason'] == 'sphere not detected'
+    posed = core(desired_source='pose')
+    assert posed.desired_stamp_ns == 0 and list(posed.desired_features()) == ['s_n']

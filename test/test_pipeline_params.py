@@ -1,9 +1,9 @@
 """
 The nodes' parameter dataclasses without ROS: built from a mapping, validated, frozen.
 
-Every config file of the package builds every node's parameters (data this code did not
-make); bad values, wrong types and broken cross-parameter rules are refused with a message
-that names the parameter.
+Every params file and scenario of the package builds every node's parameters (data this
+code did not make); bad values, wrong types and broken cross-parameter rules are refused
+with a message that names the parameter.
 """
 from __future__ import annotations
 
@@ -13,13 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from sphere_servo.pipeline.config import load_config, node_params
+from sphere_servo.pipeline.config import load_params_files, load_scenario, section
 from sphere_servo.pipeline.params import (ArmSimParams, DetectorParams, FeaturesParams,
-                                          ParameterError, ServoParams)
+                                          NODE_PARAMS as NODES, ParameterError, ServoParams)
 
-CONFIGS = sorted((Path(__file__).resolve().parents[1] / 'config').glob('*.yaml'))
-NODES = {'arm_sim': ArmSimParams, 'detector': DetectorParams, 'features': FeaturesParams,
-         'servo': ServoParams}
+CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIGS = sorted(CONFIG.glob('params/*.yaml')) + sorted(CONFIG.glob('scenarios/*.yaml'))
 
 
 @pytest.mark.parametrize('cls', NODES.values(), ids=NODES.keys())
@@ -32,11 +31,13 @@ def test_defaults_are_the_table_and_round_trip(cls):
         setattr(p, dataclasses.fields(p)[0].name, None)
 
 
-@pytest.mark.parametrize('path', CONFIGS, ids=lambda p: p.name)
+@pytest.mark.parametrize('path', CONFIGS, ids=lambda p: f'{p.parent.name}/{p.name}')
 def test_every_config_builds_every_node(path):
-    cfg = load_config(path)
+    """Each params file alone, and each scenario's params files merged in order."""
+    cfg = load_scenario(path).params if path.parent.name == 'scenarios' \
+        else load_params_files([path])
     for node, cls in NODES.items():
-        given = node_params(cfg, node)
+        given = section(cfg, node)
         p = cls.from_mapping(given)
         flat = p.to_mapping()
         for key, value in given.items():  # nested sections are ROS's dotted names

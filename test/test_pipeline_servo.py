@@ -18,15 +18,19 @@ MS = 1_000_000
 S_STAR = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])  # s*_n: sphere 9 radii ahead, θu* = 0
 
 
-def core(**over) -> ServoCore:
+def core(desired: bool = True, **over) -> ServoCore:
+    """Return a servo core holding the desired S_STAR (of an image stamped 0) if ``desired``."""
     values = {'max_image_age': 0.5, 'timeout': 0.3, 'gain': 0.5, 'v_max': 10.0,
               'w_max': 100.0, 'tol': 1e-3, **over}
-    return ServoCore(ServoParams.from_mapping(values))
+    c = ServoCore(ServoParams.from_mapping(values))
+    if desired:
+        assert c.set_desired(S_STAR, 0) is None
+    return c
 
 
-def answer(c: ServoCore, stamp_ns: int, s=None, now_ns=None, wall=0.0, s_star=S_STAR):
+def answer(c: ServoCore, stamp_ns: int, s=None, now_ns=None, wall=0.0):
     s = S_STAR + np.array([0.02, -0.01, 0.03, 0.0, 0.0, 0.0]) if s is None else s
-    return c.on_features(stamp_ns, s, s_star, stamp_ns if now_ns is None else now_ns, wall)
+    return c.on_features(stamp_ns, s, stamp_ns if now_ns is None else now_ns, wall)
 
 
 def test_translation_error_gives_the_closed_form_twist():
@@ -64,7 +68,7 @@ def test_state_machine_waiting_disabled_servoing_converged_lost():
     done = answer(c, 4 * MS, S_STAR + 1e-4)  # ‖e‖₂ = 2.4e-4 < tol
     assert done.state is ServoState.CONVERGED and done.converged
     assert np.array_equal(done.twist, np.zeros(6))
-    lost = c.on_features(5 * MS, None, None, 5 * MS, 0.0)
+    lost = c.on_features(5 * MS, None, 5 * MS, 0.0)
     assert lost.state is ServoState.TARGET_LOST and lost.level is Level.WARN
     assert lost.target_lost and lost.reason == LOST and not lost.fault
     assert np.array_equal(lost.twist, np.zeros(6)) and lost.iteration == 4
@@ -74,7 +78,7 @@ def test_state_machine_waiting_disabled_servoing_converged_lost():
 
 def test_unusable_features_are_a_fault_and_a_zero_twist():
     c = core()
-    bad = c.on_features(1 * MS, None, None, 1 * MS, 0.0, invalid='expected features …')
+    bad = c.on_features(1 * MS, None, 1 * MS, 0.0, invalid='expected features …')
     assert bad.state is ServoState.TARGET_LOST and bad.fault == 'expected features …'
     nan = answer(c, 2 * MS, S_STAR * np.nan)
     assert nan.state is ServoState.TARGET_LOST and 'not finite' in nan.fault
@@ -135,22 +139,52 @@ def test_watchdog_on_the_wall_clock():
 
 
 def test_published_values_in_order():
-    c = core(start_enabled=False)
+    c = core(desired=False, start_enabled=False)
     assert c.on_tick(0.0).values() == {'reason': 'no features yet', 'converged': 'False',
                                        'target_lost': 'False', 'iteration': '0'}
     assert answer(c, 1_500_000_007).values() == {
         'converged': 'False', 'target_lost': 'False', 'iteration': '0',
         'stamp': '1.500000007'}
+    assert c.set_desired(S_STAR, 1_400_000_000) is None
     c.enable(True)
     cmd = answer(c, 2 * 10**9, S_STAR + np.r_[0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
     vals = cmd.values(image_age_ns=1_234_567)
     assert list(vals) == ['error_norm', 'converged', 'target_lost', 'gain', 'saturated',
-                          'image_age', 'iteration', 'stamp']
+                          'image_age', 'iteration', 'stamp', 'desired_stamp']
     assert vals['error_norm'] == '0.3' and vals['gain'] == '0.5' and vals['image_age'] == \
         '0.001235' and vals['stamp'] == '2.000000000' and vals['iteration'] == '1'
-    lost = c.on_features(3 * 10**9, None, None, 3 * 10**9, 0.0).values(image_age_ns=5)
+    assert vals['desired_stamp'] == '1.400000000'
+    status = cmd.status(image_age_ns=1_234_567)
+    assert (status.state, status.level, status.message) == (
+        ServoState.SERVOING, Level.OK, 'servoing') and status.values == vals
+    lost = c.on_features(3 * 10**9, None, 3 * 10**9, 0.0).values(image_age_ns=5)
     assert lost == {'reason': LOST, 'converged': 'False', 'target_lost': 'True',
-                    'iteration': '2', 'stamp': '3.000000000'}
+                    'iteration': '2', 'stamp': '3.000000000', 'desired_stamp': '1.400000000'}
+
+
+def test_no_twist_before_a_desired_and_it_says_so():
+    """Features without a desired get a zero twist and the state ``no desired`` (WARN)."""
+    c = core(desired=False)
+    early = answer(c, 1 * MS)
+    assert early.state is ServoState.NO_DESIRED and early.level is Level.WARN
+    assert early.reason == 'no desired features yet' and early.changed
+    assert np.array_equal(early.twist, np.zeros(6)) and early.desired_stamp_ns is None
+    assert 'desired_stamp' not in early.values() and early.iteration == 1
+    assert c.set_desired(S_STAR, 7) is None
+    on = answer(c, 2 * MS)
+    assert on.state is ServoState.SERVOING and np.any(on.twist) and on.desired_stamp_ns == 7
+
+
+def test_a_desired_of_the_wrong_size_or_not_finite_is_refused():
+    """A refused desired leaves the one held: the twist is still the law's on that one."""
+    c = core()
+    for bad in (np.ones(5), S_STAR * np.nan, np.r_[S_STAR[:5], np.inf]):
+        refused = c.set_desired(bad, 9)
+        assert refused is not None and 'desired s_n needs 6 finite values' in refused.reason
+    assert c.desired_stamp_ns == 0 and np.array_equal(c.s_star, S_STAR)
+    ref = core()
+    e = S_STAR + np.r_[0.1, 0.0, -0.2, 0.0, 0.05, 0.0]
+    np.testing.assert_array_equal(answer(c, 1 * MS, e).twist, answer(ref, 1 * MS, e).twist)
 
 
 def test_saturation_keeps_the_direction():

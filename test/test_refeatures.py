@@ -101,7 +101,9 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
     tw = topics[offline.TWIST_TOPIC]
     assert tw['matched'] == tw['recorded'] - tw['no_image'] == tw['regenerated'] > 100, tw
     assert tw['max_diff'] <= 1e-12, tw
-    rec_tw, gen_tw = _stamps(bag, offline.TWIST_TOPIC), _stamps(out_bag, offline.TWIST_TOPIC)
+    # (the twists that answer an image: the watchdog's carry a zero stamp)
+    rec_tw = [t for t in _stamps(bag, offline.TWIST_TOPIC) if t]
+    gen_tw = _stamps(out_bag, offline.TWIST_TOPIC)
     assert sorted(gen_tw) == sorted(rec_tw), tw
 
     # s_n, read back from the two bags: same count, same image stamps, same numbers
@@ -114,7 +116,12 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
     with AnyReader([out_bag], default_typestore=bagio.typestore()) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
     assert counts == {offline.MEAS_TOPIC: rep['images'], '/features/s_n': len(rec),
-                      offline.TWIST_TOPIC: tw['regenerated']}
+                      offline.TWIST_TOPIC: tw['regenerated'],
+                      '/features/s_n/desired': len(rep['desired'])}
+    # each desired the run taught, regenerated with the taught image's header
+    des = topics['/features/s_n/desired']
+    assert des['matched'] == des['recorded'] == des['regenerated'] == len(rep['desired'])
+    assert des['max_diff'] <= 1e-12, des
 
 
 def test_launcher_waits_for_the_recorder_before_the_run(lockstep_run):
@@ -140,16 +147,20 @@ def test_taught_image_first_in_the_bag(lockstep_run):
     pipe = offline.Pipeline(offline.load_settings('special_sphere'))
     with bagio.bag(bag) as reader:
         rec = offline.read_topic(reader, offline.features_topic('s_n'))
-        meas = offline.read_topic(reader, offline.MEAS_TOPIC)
+        des = offline.read_topic(reader, offline.desired_topic('s_n'))
         cams = offline.Cameras(pipe, offline.read_topic(reader, offline.INFO_TOPIC))
         frames = []
         for i, ts, img in offline.iter_image_msgs(reader, offline.IMAGE_TOPIC):
             frames.append(pipe.frame(i, ts, img, cams(ts, offline.header_ns(img.header))))
     # cut the bag at the first features message under the taught s*: its image is frame 0
     rec = [(t, m) for t, m in rec if offline.header_ns(m.header) >= taught]
+    des = [(t, m) for t, m in des if offline.header_ns(m.header) == taught]
     first = offline.header_ns(rec[0][1].header)
     k = next(i for i, f in enumerate(frames) if f.stamp == first)
-    ds = desired.auto_desired(pipe, frames[k:], {'s_n': rec}, ['s_n'], meas)
+    ds = desired.auto_desired(pipe, frames[k:], {'s_n': rec}, {'s_n': des})
+    # the taught image (stamped `taught`) is cut off unless the first features came from a
+    # re-publication of it: then it is the image that reproduces its s*
+    assert ('is not in the bag' in ds[0].note) == (first > taught), ds[0].note
     # the first desired is taught from frame 0 itself (an empty search, a crash, before)
     assert ds[0].frame.stamp == first and ds[0].start == frames[k].index
 
@@ -293,3 +304,52 @@ def test_bad_inputs(tmp_path):
     # a blank image: no sphere, so the taught image cannot anchor the features
     code, _, err = _run([str(tmp_path / 'images'), '--desired', 'stamp:1.0'])
     assert code == 1 and 'cannot teach' in err, err
+
+
+def test_an_old_layout_bag_is_refused(tmp_path):
+    """A bag whose features carry s* in ``velocity`` (before the desired topic): one line."""
+    _images_only_bag(tmp_path / 'old')
+    ts = bagio.typestore()
+    T = ts.types
+    with Writer(tmp_path / 'old2', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection('/features/s_n', 'sensor_msgs/msg/JointState', typestore=ts)
+        msg = T['sensor_msgs/msg/JointState'](
+            header=T['std_msgs/msg/Header'](stamp=T['builtin_interfaces/msg/Time'](
+                sec=1, nanosec=0), frame_id='c'),
+            name=['s_nt_x', 's_nt_y', 's_nt_z', 'thetau_x', 'thetau_y', 'thetau_z'],
+            position=np.ones(6), velocity=np.ones(6), effort=np.zeros(6))
+        w.write(conn, 3, ts.serialize_cdr(msg, 'sensor_msgs/msg/JointState'))
+        for topic, kind in (('/camera/camera_info', 'sensor_msgs/msg/CameraInfo'),
+                            ('/camera/image_raw', 'sensor_msgs/msg/Image')):
+            with bagio.bag(tmp_path / 'old') as reader:
+                c = next(c for c in reader.connections if c.topic == topic)
+                raw = next(r for _, _, r in bagio.iter_raw(reader, [c]))
+            w.write(w.add_connection(topic, kind, typestore=ts), 1, raw)
+    code, out, err = _run([str(tmp_path / 'old2')])
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 1 and len(lines) == 1 and 'old features layout' in lines[0], err
+
+
+def test_regenerated_messages_are_written_as_exact_cdr():
+    """What write_bag writes reads back the same with rclpy and with rosbags (strict)."""
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import JointState
+    from sphere_servo.bag.compare import cdr
+    from sphere_servo.ros.conversions import header, twist_from_array
+    from sphere_servo.ros.vectors import features_msg, measurement_msg
+    msgs = [(features_msg('s_n', header(1.5, 'camera_optical_frame'), np.arange(6.0) / 7),
+             'sensor_msgs/msg/JointState'),
+            (features_msg('s_cc', header(2.0, 'c')), 'sensor_msgs/msg/JointState'),
+            (measurement_msg(None, header(3.0, 'c')), 'sensor_msgs/msg/JointState'),
+            (TwistStamped(header=header(4.25, 'c'), twist=twist_from_array(np.arange(6.0))),
+             'geometry_msgs/msg/TwistStamped')]
+    for msg, msgtype in msgs:
+        raw = cdr(msg, msgtype)
+        assert deserialize_message(raw, type(msg)) == msg
+        back = bagio.typestore().deserialize_cdr(raw, msgtype)
+        assert (back.header.stamp.sec, back.header.stamp.nanosec, back.header.frame_id) == (
+            msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
+        if isinstance(msg, JointState):
+            assert list(back.name) == list(msg.name)
+            np.testing.assert_array_equal(back.position, np.asarray(msg.position))

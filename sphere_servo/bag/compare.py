@@ -3,7 +3,7 @@ Regenerated streams against a bag: message for message, feature set against feat
 
 - :func:`compare_recorded`: per topic, the regenerated stream against the recorded one,
   paired by image stamp (counts, names, max |difference|).
-- :func:`write_bag`: the regenerated streams into a new rosbag2.
+- :func:`write_bag`: the regenerated streams into a new rosbag2 (:func:`cdr`: exact CDR).
 - :func:`compare_sets`, :func:`format_sets`, :func:`plot_sets`: each set's error and the
   law's twist on the same images (open loop).
 - :func:`export_desired`: the taught image as a PNG the features node reads back.
@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rosbags.interfaces import Nodetype
 
 from sphere_servo.bag.bagio import bag, BagError, topic_name, typestore
 from sphere_servo.bag.offline import (header_ns, IMAGE_TOPIC, iter_image_msgs, MEAS_TOPIC, TOL,
@@ -113,9 +114,35 @@ def compare_recorded(res: Result, topic: str) -> Match | None:
     return Match(topic, len(gen), len(rec), len(pairs), common, names, diff, no_image, warmup)
 
 
+def _as_rosbags(value, spec, store):
+    """Return ``value`` (a field of an rclpy message) as rosbags serializes it."""
+    kind, detail = spec
+    if kind == Nodetype.NAME:
+        cls = store.types[detail]
+        return cls(**{name: _as_rosbags(getattr(value, name), sub, store)
+                      for name, sub in store.fielddefs[detail][1]})
+    if kind == Nodetype.BASE:
+        return value
+    (sub_kind, sub_detail), _ = detail  # an array or a sequence
+    if sub_kind == Nodetype.BASE and sub_detail[0] != 'string':
+        return np.asarray(value, dtype=np.dtype(sub_detail[0]))
+    return [_as_rosbags(v, (sub_kind, sub_detail), store) for v in value]
+
+
+def cdr(msg, msgtype: str) -> bytes:
+    """
+    Serialize an rclpy message to CDR with rosbags (exactly its length).
+
+    rclpy's ``serialize_message`` (rmw_fastrtps, Jazzy) leaves bytes after a message that ends
+    with an empty sequence (a JointState without velocity and effort): rosbags refuses them.
+    """
+    store = typestore()
+    return bytes(store.serialize_cdr(_as_rosbags(msg, (Nodetype.NAME, msgtype), store),
+                                     msgtype))
+
+
 def write_bag(res: Result, out: Path, storage: str = 'mcap') -> dict[str, int]:
     """Write the regenerated streams into a new rosbag2 (bag times = the images' bag times)."""
-    from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
     types = {MEAS_TOPIC: 'sensor_msgs/msg/JointState',
              TWIST_TOPIC: 'geometry_msgs/msg/TwistStamped'}
@@ -129,7 +156,7 @@ def write_bag(res: Result, out: Path, storage: str = 'mcap') -> dict[str, int]:
             counts[topic] = len(msgs)
             items += [(ts, k, conn, m) for k, (ts, m) in enumerate(msgs)]
         for ts, _, conn, m in sorted(items, key=lambda x: (x[0], x[2].id, x[1])):
-            w.write(conn, ts, serialize_message(m))
+            w.write(conn, ts, cdr(m, conn.msgtype))
     return counts
 
 

@@ -1,11 +1,13 @@
 """
 The desired features of a recorded run, found in its bag (``refeatures --desired``).
 
-- ``auto``: the image the recorded run taught. The features node teaches the *latest*
-  measurement and publishes features for every later one, so the taught image is the last
-  image before the first recorded ``features/<set>`` message whose features reproduce that
-  message's s* (its ``velocity``), judged on the recorded ``detector/measurement`` when
-  there is one, so a changed detector still finds it. Each later change of s* is a re-teach.
+- ``auto``: the images the recorded run taught, one per recorded ``features/<set>/desired``
+  message (a teach): its header stamp is the taught image's. The features node teaches the
+  *latest* measurement and publishes features for every later one; the first recorded
+  ``features/<set>`` message under a desired is the first one stamped after the taught
+  image, or stamped as it (a re-publication of that image) with s = s*. If the taught image
+  is not in the bag (recording began at the teach), it is the image before that message
+  whose features reproduce the recorded s*.
 - ``stamp:T``: the image with header stamp T (seconds, e.g. ``stamp:1.133333333``).
 - ``pose:X,Y,Z,ROLL,PITCH,YAW``: the exact projection of the target at cMo.
 - ``image:FILE``: an image file detected with the bag's first intrinsics.
@@ -27,7 +29,6 @@ from sphere_servo.pipeline.common import parse_stamp, stamp_text
 from sphere_servo.pipeline.detector import camera_from_info
 from sphere_servo.pipeline.features import observation_from_image, read_image
 from sphere_servo.pipeline.params import ParameterError
-from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.sim.arm import pose_from_xyz_rpy
 
 
@@ -85,10 +86,14 @@ def _from_image(pipe: Pipeline, path: Path, cameras: Cameras) -> Desired:
     return Desired('image', obs, note=str(path))
 
 
-def find_desired(pipe: Pipeline, frames: list[Frame], spec: str, recorded: dict,
-                 cameras: Cameras, names: list[str],
-                 recorded_meas: list | None = None) -> list[Desired]:
-    """Return the desireds per ``--desired``, in the order they took effect (re-teaches)."""
+def find_desired(pipe: Pipeline, frames: list[Frame], spec: str, features: dict,
+                 desireds: dict, cameras: Cameras) -> list[Desired]:
+    """
+    Return the desireds per ``--desired``, in the order they took effect (re-teaches).
+
+    ``features``, ``desireds``: set → the recorded ``features/<set>`` and
+    ``features/<set>/desired`` messages, [(bag ns, message)].
+    """
     kind, arg = parse_desired(spec)
     if kind == 'pose':
         if not pipe.target.is_sphere:
@@ -110,96 +115,111 @@ def find_desired(pipe: Pipeline, frames: list[Frame], spec: str, recorded: dict,
                                    f'{exc}') from None
                 return [Desired('stamp', obs, f, start=f.index + 1)]
         raise BagError(f'no image stamped {stamp_text(arg)} in the bag')
-    return auto_desired(pipe, frames, recorded, names, recorded_meas)
+    return auto_desired(pipe, frames, features, desireds)
 
 
-def _teach_events(msgs: list) -> list[tuple[int, np.ndarray]]:
-    """
-    Return (stamp of the first features message under a desired, that s*) per desired.
-
-    For each desired the recorded stream shows: the first message, then each s* change (a
-    re-teach).
-    """
-    events, prev = [], None
-    for _, m in msgs:
-        if not len(m.name):
-            continue  # target lost: no s* in the message
-        star = np.asarray(m.velocity, float)
-        if prev is None or not np.array_equal(star, prev):
-            events.append((header_ns(m.header), star))
-            prev = star
-    if events:  # the first desired starts with the first message, even an empty one
-        events[0] = (header_ns(msgs[0][1].header), events[0][1])
-    return events
+def old_layout(features: dict) -> bool:
+    """Tell whether recorded features carry s* in ``velocity`` (bags of the old layout)."""
+    return any(len(m.velocity) for msgs in features.values() for _, m in msgs)
 
 
-def _star_error(pipe: Pipeline, name: str, meas: Measurement, star: np.ndarray) -> float:
-    """Return max |s* − the s* this measurement would give| (inf if it cannot be taught)."""
+def _star_error(pipe: Pipeline, name: str, f: Frame, star: np.ndarray) -> float:
+    """Return max |s* − the s* this frame would give| (inf if it cannot be taught)."""
     try:
-        return float(np.max(np.abs(make_feature_set(name, pipe.observation(meas)).desired
+        return float(np.max(np.abs(make_feature_set(name, pipe.observation(f.meas)).desired
                                    - star)))
     except GeometryError:
         return np.inf
 
 
-def auto_desired(pipe: Pipeline, frames: list[Frame], recorded: dict, names: list[str],
-                 recorded_meas: list | None = None) -> list[Desired]:
+def _first_under(msgs: list, lo: int, taught: int, star: np.ndarray, tol: float,
+                 first: bool) -> int | None:
     """
-    Return the taught images, one per teach (``auto`` in the module docstring).
+    Return the index in ``msgs`` of the first features message under a desired.
 
-    An image is recognised by what the live features node saw, the recorded
-    ``detector/measurement`` with its stamp when the bag has it, so a changed detector
-    still finds the taught image; the desired is then that image's regenerated measurement.
+    From ``lo`` on: the first stamped after the taught image ``taught``, or stamped as it
+    with s = s* (for the first desired, any stamped as it: no features came before).
     """
-    seen: dict[int, list] = {}
-    for _, m in recorded_meas or []:
-        seen.setdefault(header_ns(m.header), []).append(Measurement.of(m.name, m.position))
-    have = [n for n in ('s_n', 's_cc', 's') if recorded.get(n)]  # s's s* is 0: weakest
+    for k in range(lo, len(msgs)):
+        m = msgs[k][1]
+        st = header_ns(m.header)
+        if st > taught:
+            return k
+        if st == taught and (first or (len(m.name) == len(star) and float(np.max(np.abs(
+                np.asarray(m.position, float) - star))) <= tol)):
+            return k
+    return None
+
+
+def auto_desired(pipe: Pipeline, frames: list[Frame], features: dict,
+                 desireds: dict) -> list[Desired]:
+    """Return the taught images, one per recorded desired (``auto``, module docstring)."""
+    have = [n for n in ('s_n', 's_cc', 's') if desireds.get(n)]  # s's s* is 0: weakest
+    if old_layout(features):
+        raise BagError('this bag has the old features layout (s* in features/<set> velocity, '
+                       'before features/<set>/desired existed), which refeatures no longer '
+                       'reads: record the run again')
     if not have:
-        raise BagError('the bag has no features/<set> messages to find the taught image: '
-                       'give --desired stamp:T, pose:X,Y,Z,ROLL,PITCH,YAW or image:FILE')
+        raise BagError('the bag has no features/<set>/desired messages to find the taught '
+                       'image: give --desired stamp:T, pose:X,Y,Z,ROLL,PITCH,YAW or image:FILE')
     name = have[0]
-    events = _teach_events(recorded[name])
-    if not events:
-        raise BagError(f'every recorded features/{name} message is empty (target lost): '
-                       'give --desired stamp:T, pose:... or image:FILE')
+    msgs = features.get(name) or []
     out: list[Desired] = []
-    lo = 0
-    for first_stamp, star in events:
-        # the first features message under this desired came from an image with its stamp
-        # (the first one after lo, or a later re-publication of it when the image taught
-        # is that very image); the taught image is the last image before it whose features
-        # reproduce s*, or that image itself (teaching on the bag's very first frame)
-        starts = [k for k in range(lo, len(frames)) if frames[k].stamp == first_stamp]
-        if not starts:
-            raise BagError(f'the features/{name} message stamped {stamp_text(first_stamp)} '
-                           'has no image in the bag')
+    lo_msg, lo = 0, 0  # positions in msgs and in frames
+    for i, (_, dm) in enumerate(desireds[name]):
+        taught, star = header_ns(dm.header), np.asarray(dm.position, float)
         tol = TOL * max(1.0, float(np.max(np.abs(star))))
-        errs: dict[int, float] = {}
-        for start in starts:
-            for k in range(start + 1):
-                if k not in errs:
-                    errs[k] = min(_star_error(pipe, name, m, star) for m in
-                                  seen.get(frames[k].stamp, [frames[k].meas]))
-            # an image before the first message under s* is the taught one; that message's
-            # own image only when none before it is (teaching on the bag's first frame)
-            exact = [k for k in range(start) if errs[k] <= tol] or \
-                [k for k in (start,) if errs[k] <= tol]
-            if exact:
-                best, best_err = exact[-1], 0.0
-                break
+        p = _first_under(msgs, lo_msg, taught, star, tol, i == 0)
+        if p is None:  # no features under it recorded: from the image after the taught one
+            start = next((j for j in range(lo, len(frames)) if frames[j].stamp > taught),
+                         len(frames))
         else:
-            start = starts[0]
-            best_err, best = min((errs[k], k) for k in range(start + 1))
-            if not np.isfinite(best_err):
-                raise BagError(f'no image before the features/{name} message stamped '
-                               f'{stamp_text(first_stamp)} is usable as the taught one: give '
-                               '--desired stamp:T, pose:... or image:FILE')
-        f = frames[best]
-        note = (f'image stamped {stamp_text(f.stamp)} reproduces the recorded s* of '
-                f'features/{name}' + ('' if best_err == 0.0 else
-                                      f' only to {best_err:.3g} (the closest)'))
-        out.append(Desired('auto', pipe.observation(f.meas), f, start=frames[start].index,
-                           note=note))
-        lo = start + 1
+            # as many frames of that stamp get features as recorded messages have it
+            st = header_ns(msgs[p][1].header)
+            n = next((k for k in range(p, len(msgs)) if header_ns(msgs[k][1].header) != st),
+                     len(msgs)) - p
+            same = [j for j in range(lo, len(frames)) if frames[j].stamp == st]
+            if not same:
+                raise BagError(f'the features/{name} message stamped {stamp_text(st)} has no '
+                               'image in the bag')
+            start = same[-min(n, len(same))]
+            lo_msg = p + n
+        f, note = _taught_frame(pipe, frames[lo:start + 1], start - lo, taught, star, name)
+        try:
+            obs = pipe.observation(f.meas)
+        except GeometryError as exc:
+            raise BagError(f'cannot teach the image stamped {stamp_text(f.stamp)}: '
+                           f'{exc}') from None
+        first = frames[start].index if start < len(frames) else frames[-1].index + 1
+        out.append(Desired('auto', obs, f, start=first, note=note))
+        lo = start
     return out
+
+
+def _taught_frame(pipe: Pipeline, upto: list[Frame], start: int, taught: int,
+                  star: np.ndarray, name: str) -> tuple[Frame, str]:
+    """
+    Return the taught frame among ``upto`` (up to the first under it, position ``start``).
+
+    The last stamped ``taught`` before ``start`` (or at it); if none, the frame whose
+    features reproduce s* best. Returns it and a note.
+    """
+    same = [k for k, f in enumerate(upto) if f.stamp == taught]
+    if same:
+        before = [k for k in same if k < start]
+        f = upto[(before or same)[-1]]
+        return f, f'the image stamped {stamp_text(taught)} (features/{name}/desired)'
+    # the latest of the best: the taught image is the last before the features under it
+    err, k = min(((_star_error(pipe, name, f, star), -k) for k, f in enumerate(upto)),
+                 default=(np.inf, 0))
+    k = -k
+    if not np.isfinite(err):
+        raise BagError(f'the image stamped {stamp_text(taught)} that the recorded '
+                       f'features/{name}/desired was taught from is not in the bag, and no '
+                       'image before its first features reproduces it: give --desired '
+                       'stamp:T, pose:... or image:FILE')
+    f = upto[k]
+    exact = err <= TOL * max(1.0, float(np.max(np.abs(star))))
+    return f, (f'the image stamped {stamp_text(taught)} is not in the bag; the one stamped '
+               f'{stamp_text(f.stamp)} reproduces its s*'
+               + ('' if exact else f' only to {err:.3g} (the closest)'))

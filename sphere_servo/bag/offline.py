@@ -15,7 +15,7 @@ from sphere_servo.bag.bagio import BagError, iter_raw, select_connections
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import Observation
 from sphere_servo.pipeline.common import stamp_ns
-from sphere_servo.pipeline.config import find_config, load_config, node_params
+from sphere_servo.pipeline.config import load_node_params, section
 from sphere_servo.pipeline.detector import camera_from_info, DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore, FeaturesOutput
 from sphere_servo.pipeline.params import DetectorParams, FeaturesParams, ServoParams
@@ -23,7 +23,7 @@ from sphere_servo.pipeline.servo import ServoCommand, ServoCore, Unanswered
 from sphere_servo.pipeline.vectors import Measurement, SetFeatures
 
 IMAGE_TOPIC, INFO_TOPIC = '/camera/image_raw', '/camera/camera_info'
-MEAS_TOPIC, TWIST_TOPIC = '/detector/measurement', '/camera/cmd_vel_stamped'
+MEAS_TOPIC, TWIST_TOPIC = '/detector/measurement', '/camera/cmd_vel'
 STATE_TOPIC = '/servo/state'
 TOL = 1e-9
 
@@ -31,6 +31,11 @@ TOL = 1e-9
 def features_topic(name: str) -> str:
     """Return the topic of a feature set, ``/features/<name>``."""
     return f'/features/{name}'
+
+
+def desired_topic(name: str) -> str:
+    """Return the topic of a feature set's desired features, ``/features/<name>/desired``."""
+    return f'/features/{name}/desired'
 
 
 def header_ns(h) -> int:
@@ -47,17 +52,17 @@ class Settings:
     servo: ServoParams
 
     @classmethod
-    def from_config(cls, config: dict | None = None) -> Settings:
-        """Return the nodes' defaults, overridden by a merged launcher config's sections."""
-        config = config or {}
-        return cls(DetectorParams.from_mapping(node_params(config, 'detector')),
-                   FeaturesParams.from_mapping(node_params(config, 'features')),
-                   ServoParams.from_mapping(node_params(config, 'servo')))
+    def from_params(cls, params: dict | None = None) -> Settings:
+        """Return the nodes' defaults, overridden by merged params files' sections."""
+        params = params or {}
+        return cls(DetectorParams.from_mapping(section(params, 'detector')),
+                   FeaturesParams.from_mapping(section(params, 'features')),
+                   ServoParams.from_mapping(section(params, 'servo')))
 
 
-def load_settings(config: str | None) -> Settings:
-    """Return the settings of a launcher config (a name or a path), or the defaults."""
-    return Settings.from_config(load_config(find_config(config)) if config else None)
+def load_settings(spec: str | None) -> Settings:
+    """Return the settings of a scenario (name or path) or a params file, or the defaults."""
+    return Settings.from_params(load_node_params(spec) if spec else None)
 
 
 def ros_header(h):
@@ -111,12 +116,20 @@ class Pipeline:
         """Return the features node's Observation of a measurement (MeasurementError if lost)."""
         return self.features.observation(meas)
 
-    def set_desired(self, obs: Observation, names) -> None:
-        """Anchor the sets ``names`` on ``obs`` (GeometryError if they cannot be)."""
+    def set_desired(self, obs: Observation, names, stamp: int = 0) -> None:
+        """
+        Anchor the sets ``names`` on ``obs``, of the image stamped ``stamp``.
+
+        The servo takes the desired of its set, if among ``names``. GeometryError if they
+        cannot be anchored.
+        """
         if tuple(names) != self.features.names:
             self.features = FeaturesCore(self.features.params.replace({'sets': list(names)}))
-        self.features.set_desired(obs)
+        self.features.set_desired(obs, stamp)
         self.desired_obs = obs
+        s_star = self.features.desired_features().get(self.servo.feature_set)
+        if s_star is not None:
+            self.servo.set_desired(s_star, stamp)
 
     def features_of(self, f: Frame) -> FeaturesOutput:
         """Return the features of every anchored set for one frame (lost: empty)."""
@@ -132,8 +145,7 @@ class Pipeline:
         law fails, the law's twist else.
         """
         self.servo.enable(enabled)
-        return self.servo.on_features(stamp, None if fs is None else fs.s,
-                                      None if fs is None else fs.s_star, stamp, 0.0)
+        return self.servo.on_features(stamp, None if fs is None else fs.s, stamp, 0.0)
 
 
 def read_topic(reader, topic: str) -> list[tuple[int, object]]:

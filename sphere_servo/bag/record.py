@@ -44,8 +44,8 @@ from sphere_servo.bag.writer import BagWriter
 # the pipeline's topics (module docstrings of ros/arm_sim, detector, features, servo):
 # enough to regenerate the features offline (``refeatures``) and to compare with what ran
 DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measurement',
-                  'features/s_n', 'camera/cmd_vel', 'camera/cmd_vel_stamped', 'servo/state',
-                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/status']
+                  'features/s_n', 'features/s_n/desired', 'camera/cmd_vel', 'servo/state',
+                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/state', '/diagnostics']
 # never recorded by --all (as ros2 bag record --all)
 EXCLUDED = {'/rosout', '/parameter_events'}
 DRAIN_IDLE = 0.05   # s: the drain ends when the subscriptions stay empty this long

@@ -10,18 +10,18 @@ No ROS graph: the bag's images and camera_info go through the code the nodes run
 nodes' order: the cores of :mod:`sphere_servo.pipeline` (``DetectorCore``, ``FeaturesCore``,
 and ``ServoCore`` open loop: the twist is computed, nothing moves) and the nodes' message
 codecs. Parameters are the nodes' defaults, or the ``detector`` / ``features`` / ``servo``
-sections of a launcher config (``--config special_sphere`` for a bag of ``make demo``),
-read into the nodes' parameter dataclasses. The work is done by
+sections of a scenario's params files (``--config special_sphere`` for a bag of ``make
+demo``) or of one params file (``--config config/params/x.yaml``), read into the nodes'
+parameter dataclasses. The work is done by
 :mod:`sphere_servo.bag.regenerate`, :mod:`sphere_servo.bag.desired` and
 :mod:`sphere_servo.bag.compare`.
 
 Desired features (``--desired``):
-  auto         (default) the image the recorded run taught. The features node teaches the
-               *latest* measurement and publishes features for every later one, so the
-               taught image is the last image before the first recorded ``features/<set>``
-               message whose features reproduce that message's s* (its ``velocity``) —
-               judged on the recorded ``detector/measurement`` when there is one, so a
-               changed detector still finds it. Each later change of s* is a re-teach.
+  auto         (default) the images the recorded run taught: each recorded
+               ``features/<set>/desired`` message is a teach, its header stamp the taught
+               image's. Features are made from the first image under it on (the first
+               recorded ``features/<set>`` message after the teach). A bag of the old
+               layout (s* in ``features/<set>`` velocity) is refused.
   stamp:T      the image with header stamp T (seconds, e.g. ``stamp:1.133333333``)
   pose:X,Y,Z,ROLL,PITCH,YAW  exact projection of the target at cMo (``desired_source: pose``)
   image:FILE   an image file detected with the bag's intrinsics (``desired_source: image``)
@@ -32,9 +32,11 @@ What it prints or writes:
   (always)     per topic, the regenerated stream against the recorded one, message for
                message by image stamp: counts, max |difference|; ``--check`` exits 1 unless
                they agree within TOL (default 1e-9): features/<set> the same stream;
-               measurements and twists every message whose image stamp both have.
-  -o OUT       a new bag with ``detector/measurement``, ``features/<set>`` and, with
-               ``--servo``, ``camera/cmd_vel_stamped`` (bag times = the images' bag times).
+               measurements and twists every message whose image stamp both have (twists
+               with a zero stamp, the servo's watchdog, are left out).
+  -o OUT       a new bag with ``detector/measurement``, ``features/<set>``,
+               ``features/<set>/desired`` and, with ``--servo``, ``camera/cmd_vel``
+               (TwistStamped; bag times = the images' bag times).
   --compare    sets A B ...: each set's error and the law's twist on the same images (open
                loop), as a table, and with ``--plot`` as a PNG (errors | twists, a row a set).
   --export-desired PNG  the taught image, so the live nodes reproduce it over ROS:
@@ -68,8 +70,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                                 epilog=__doc__.strip().split('\n\n', 2)[2])
     p.add_argument('bag', help='rosbag2 directory with the images and camera_info')
     p.add_argument('--config', default=None,
-                   help='launcher config (name or path) whose detector/features/servo '
-                        "parameters to use (default: the nodes' defaults)")
+                   help='scenario (name or path) or params file whose detector/features/'
+                        "servo parameters to use (default: the nodes' defaults)")
     p.add_argument('--sets', nargs='+', default=None, metavar='SET',
                    help='feature sets to regenerate (default: those recorded, else s_n)')
     p.add_argument('--desired', default='auto', metavar='SPEC',
@@ -85,7 +87,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    'this new bag directory')
     p.add_argument('-s', '--storage', choices=['mcap', 'sqlite3'], default='mcap')
     p.add_argument('--servo', action='store_true',
-                   help="also the servo's open-loop twist (camera/cmd_vel_stamped)")
+                   help="also the servo's open-loop twist (camera/cmd_vel)")
     p.add_argument('--compare', nargs='+', default=None, metavar='SET',
                    help='compare these feature sets on the same images (errors, twists)')
     p.add_argument('--plot', default=None, metavar='PNG', help='with --compare: the figure')

@@ -1,19 +1,15 @@
 """
-``launcher``: start the servo pipeline's nodes as separate processes from one YAML config.
+``launcher``: start the servo pipeline's nodes as separate processes from a scenario file.
 
     launcher --config special_sphere [--until-converged] [--timeout 120] [--record DIR]
 
-The config is a ROS 2 parameters file (one ``<node>: ros__parameters:`` section per node)
-plus a ``launch:`` section read only by the launcher::
-
-    launch:
-      include: [arm_sim.yaml]   # merged first (paths relative to this file); later wins
-      nodes: [arm_sim, detector, features, servo]
-      teach: true               # arm to desired → teach that image → arm to start
-      timeout: 120.0            # wall seconds for --until-converged
-
-``--config`` takes a path, or a name looked up in the installed ``share/sphere_servo/config``
-and then in the source tree's ``config/``. The nodes run as processes
+A scenario (``config/scenarios/<name>.yaml``, see :mod:`sphere_servo.pipeline.config`) names
+the nodes, their plain ROS 2 params files (``config/params/*.yaml``, given to every node in
+order) and the run: ``teach`` (arm to desired → teach that image → arm to start → enable the
+servo), ``timeout`` (wall seconds for ``--until-converged``), ``record_topics``.
+``--config`` (alias ``--scenario``) takes a path, or a name looked up in the installed
+``share/sphere_servo/config/scenarios`` and then in the source tree's ``config/scenarios``.
+The nodes run as processes
 (:mod:`~sphere_servo.bringup.processes`: how they are found, forwarded, stopped, and
 terminated if the launcher dies); an rclpy node in the launcher
 (:mod:`~sphere_servo.bringup.supervisor`) runs the teach sequence and watches the servo.
@@ -34,7 +30,8 @@ import time
 
 from sphere_servo.bringup.processes import Launcher, LaunchError
 from sphere_servo.bringup.supervisor import Supervisor
-from sphere_servo.pipeline.config import ConfigError, find_config, load_config, node_params
+from sphere_servo.pipeline.config import ConfigError, Scenario, scenario
+from sphere_servo.ros.params import StopFlag
 
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
 
@@ -50,7 +47,7 @@ class ExitCode(IntEnum):
     INTERRUPTED = 130  # Ctrl-C or SIGTERM during --until-converged (128 + SIGINT)
 
 
-def run(config: dict, until_converged: bool = False, timeout: float | None = None,
+def run(sc: Scenario, until_converged: bool = False, timeout: float | None = None,
         record: str | None = None, collect: bool = False, out=sys.stdout,
         progress_every: float = 1.0,
         env: dict | None = None) -> tuple[ExitCode, Supervisor | None, dict[str, int]]:
@@ -65,43 +62,44 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
     def log(msg):
         out.write(f'[launcher] {msg}\n')
         out.flush()
-    launch = config.get('launch') or {}
-    if launch.get('teach', True) and node_params(config, 'servo').get('start_enabled', True):
-        log('config error: teach needs the servo disabled until the arm is at the start '
-            'pose; set servo start_enabled: false')
+    start_enabled = sc.node_params('servo').get('start_enabled', True)
+    if sc.teach and start_enabled:
+        log(f'scenario error ({sc.path}): teach needs the servo disabled until the arm is at '
+            'the start pose; set servo start_enabled: false in its params')
         return ExitCode.BAD_CONFIG, None, {}
-    timeout = float(timeout if timeout is not None else launch.get('timeout', 120.0))
-    launcher = Launcher(config, out=out, env=env)
+    timeout = float(timeout if timeout is not None else sc.timeout)
+    launcher = Launcher(sc, out=out, env=env)
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
     if record:
         from sphere_servo.bag.record import DEFAULT_TOPICS
-        topics = launch.get('record_topics', list(DEFAULT_TOPICS))
+        topics = list(sc.record_topics or DEFAULT_TOPICS)
         extra['record'] = ['--output', record, '--topics', *topics]
     sup = None
     code = ExitCode.OK
     interrupted = False
-
-    def on_term(signum, frame):
-        raise KeyboardInterrupt
-    old_term = signal.signal(signal.SIGTERM, on_term)
+    # Ctrl-C and SIGTERM only set a flag; the supervisor raises KeyboardInterrupt between two
+    # callbacks (one raised asynchronously inside rclpy's C++ take was lost: see ros.params)
+    stop = StopFlag()
+    old_handlers = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         launcher.start(extra)
-        sup = Supervisor(config, collect=collect,
-                         domain_id=int(domain) if domain not in (None, '') else None)
+        sup = Supervisor(sc, collect=collect,
+                         domain_id=int(domain) if domain not in (None, '') else None,
+                         stop=lambda: stop.requested)
         alive = lambda: not launcher.dead()  # noqa: E731
         if record:
             left = sup.wait_recorder(RECORD_READY_TIMEOUT, alive)
             log('recording every topic' if left is None else
                 f'warning: the run starts before the recorder is ready: {left}')
-        if launch.get('teach', True):
+        if sc.teach:
             try:
                 sup.teach(log, alive)
             except LaunchError as exc:
                 log(f'teach sequence failed: {exc}')
                 code = ExitCode.TEACH_FAILED if not launcher.dead() else ExitCode.NODE_DIED
                 return code, sup, launcher.stop()
-        elif not node_params(config, 'servo').get('start_enabled', True):
+        elif not start_enabled:
             sup.enable_servo(log)
         t0 = time.monotonic()
         last_print = 0.0
@@ -139,8 +137,10 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
         log(str(exc))
         code = ExitCode.NODE_DIED
     finally:
-        signal.signal(signal.SIGTERM, old_term)
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
         if sup is not None:
+            sup.stop = lambda: False  # the last messages still come in
             sup.spin(0.2)
             sup.close()
         codes = launcher.stop()
@@ -154,20 +154,21 @@ def run(config: dict, until_converged: bool = False, timeout: float | None = Non
 
 def main(argv=None) -> int:
     """Run the launcher's command line; return its exit code."""
-    ap = argparse.ArgumentParser(description='start the sphere_servo pipeline from a config')
-    ap.add_argument('--config', default='special_sphere', help='config path or name')
+    ap = argparse.ArgumentParser(description='start the sphere_servo pipeline from a scenario')
+    ap.add_argument('--config', '--scenario', dest='scenario', default='special_sphere',
+                    help='scenario path or name (config/scenarios/<name>.yaml)')
     ap.add_argument('--until-converged', action='store_true',
                     help='exit 0 when the servo converges, non-zero on failure/timeout')
     ap.add_argument('--timeout', type=float, default=None, help='wall seconds (default: '
-                    'launch.timeout of the config, or 120)')
+                    "the scenario's timeout)")
     ap.add_argument('--record', metavar='DIR', help='record a rosbag2 into DIR')
     args = ap.parse_args(argv)
     try:
-        config = load_config(find_config(args.config))
+        sc = scenario(args.scenario)
     except ConfigError as exc:
         print(f'launcher: {exc}', file=sys.stderr)
         return ExitCode.BAD_CONFIG
-    code, _, _ = run(config, args.until_converged, args.timeout, args.record)
+    code, _, _ = run(sc, args.until_converged, args.timeout, args.record)
     return code
 
 

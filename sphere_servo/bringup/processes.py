@@ -1,7 +1,9 @@
 """
 The launcher's processes: start the pipeline's nodes, watch them, stop them in order.
 
-Executables are resolved as ``ros2 run`` does
+Each node of the scenario starts with ``--ros-args`` and every params file of the scenario,
+in order (``--params-file A --params-file B``: B overrides what it sets), as the launch file
+starts them. Executables are resolved as ``ros2 run`` does
 (``get_package_prefix('sphere_servo')/lib/sphere_servo/<name>``), falling back to
 ``python -m sphere_servo.ros.<name>`` when the package is not installed (a source
 checkout). Each process's output is forwarded with a ``[name]`` prefix. :meth:`Launcher.stop`
@@ -15,15 +17,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import os
-from pathlib import Path
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 
-from sphere_servo.pipeline.config import ConfigError, package_prefix
-import yaml
+from sphere_servo.pipeline.config import ConfigError, package_prefix, Scenario
 
 MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
@@ -105,27 +104,27 @@ def _forward(name: str, stream, out) -> None:
     stream.close()
 
 
+def ros_args(scenario: Scenario) -> list[str]:
+    """Return ``--ros-args --params-file F …`` of the scenario's params files, in order."""
+    args = ['--ros-args']
+    for path in scenario.params_files:
+        args += ['--params-file', str(path)]
+    return args
+
+
 @dataclass
 class Launcher:
-    """Starts, watches and stops the pipeline described by a merged config."""
+    """Starts, watches and stops the nodes of a scenario."""
 
-    config: dict
+    scenario: Scenario
     out: object = sys.stdout
     env: dict | None = None  # the children's environment (default: this process's)
     children: dict = field(default_factory=dict)
-    params_file: str = ''
 
     def start(self, extra: dict | None = None) -> None:
-        """Start every node of ``launch.nodes`` (``extra``: name → extra argv)."""
-        nodes = (self.config.get('launch') or {}).get(
-            'nodes', ['arm_sim', 'detector', 'features', 'servo'])
-        params = {k: v for k, v in self.config.items() if k != 'launch'}
-        fd, self.params_file = tempfile.mkstemp(prefix='sphere_servo_', suffix='.yaml')
-        with os.fdopen(fd, 'w') as fh:
-            yaml.safe_dump(params, fh)
-        for name in nodes:
-            cmd = node_command(name) + ['--ros-args', '--params-file', self.params_file]
-            self._spawn(name, cmd)
+        """Start every node of the scenario (``extra``: name → argv of other executables)."""
+        for name in self.scenario.nodes:
+            self._spawn(name, node_command(name) + ros_args(self.scenario))
         for name, argv in (extra or {}).items():
             self._spawn(name, node_command(name) + list(argv))
 
@@ -134,8 +133,7 @@ class Launcher:
         old = self.children[name]
         if old.popen.poll() is None:
             raise LaunchError(f'{name} is still running')
-        self._spawn(name, node_command(name) + ['--ros-args', '--params-file',
-                                                self.params_file])
+        self._spawn(name, node_command(name) + ros_args(self.scenario))
 
     def _spawn(self, name: str, cmd: list[str]) -> None:
         env = dict(self.env if self.env is not None else os.environ, PYTHONUNBUFFERED='1')
@@ -159,6 +157,4 @@ class Launcher:
         for c in self.children.values():
             if c.thread is not None:
                 c.thread.join(2)
-        if self.params_file:
-            Path(self.params_file).unlink(missing_ok=True)
         return {n: c.popen.returncode for n, c in self.children.items()}

@@ -1,8 +1,10 @@
 """
 The launcher's rclpy node: runs the teach sequence, watches the servo, collects histories.
 
-The servo's state arrives as its status message's text and is read as a
-:class:`~sphere_servo.pipeline.servo.ServoState`.
+The servo's state comes from its ``~/state`` (``/servo/state``, a DiagnosticArray whose
+header is that of the image answered): the status message is read as a
+:class:`~sphere_servo.pipeline.servo.ServoState`. The taught image's stamp comes from the
+desired features' header (``features/<set>/desired``, transient-local), not from a reply.
 """
 from __future__ import annotations
 
@@ -12,7 +14,8 @@ import time
 import numpy as np
 
 from sphere_servo.bringup.processes import LaunchError
-from sphere_servo.pipeline.config import node_params
+from sphere_servo.pipeline.common import NS, stamp_ns, stamp_text
+from sphere_servo.pipeline.config import Scenario
 from sphere_servo.pipeline.servo import ServoState
 
 HISTORY_DEPTH = 1000  # the supervisor's subscriptions to the per-frame topics
@@ -27,25 +30,37 @@ class Supervisor:
     an unknown one) and, if asked, collects the time histories for the figures.
     """
 
-    def __init__(self, config: dict, collect: bool = False, domain_id: int | None = None):
+    def __init__(self, sc: Scenario, collect: bool = False, domain_id: int | None = None,
+                 stop=lambda: False):
+        """
+        Subscribe and make the service clients.
+
+        ``stop()`` true: the next :meth:`spin` or :meth:`wait` raises KeyboardInterrupt
+        (between two callbacks, never inside one).
+        """
         import rclpy
-        from diagnostic_msgs.msg import DiagnosticStatus
+        from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped, TwistStamped
         from sensor_msgs.msg import JointState
+        from sphere_servo.ros.vectors import DESIRED_QOS, desired_topic
 
         self.rclpy = rclpy
+        self.stop = stop
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=domain_id)
         self.node = rclpy.create_node('launcher', context=self.ctx)
         self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
-        self.config = config
+        self.scenario = sc
         self.state: ServoState | None = None
         self.state_values: dict[str, str] = {}
+        self.state_image = None  # stamp (s) of the image the latest state answered (None: none)
         self.poses: list = []          # (stamp, oMc 4×4)
         self.measurements: list = []   # (stamp, {name: value})
-        self.features: list = []       # (stamp, s, s*)
-        self.twists: list = []         # (stamp, v (6,))
+        self.features: list = []       # (stamp, s, s* of the latest desired)
+        self.twists: list = []         # (stamp, v (6,)) of the twists that answer an image
+        self.desired = None            # (stamp ns, s*) of the latest desired features
+        self.desired_count = 0
         self.collect = collect
         self.last_pose = None
         self.last_meas_stamp = -1.0
@@ -59,16 +74,17 @@ class Supervisor:
         self._clients: dict = {}
         self.recent_poses = collections.deque(maxlen=HISTORY_DEPTH)  # (stamp, oMc)
         self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
-        fset = node_params(config, 'servo').get('feature_set', 's_n')
+        fset = sc.node_params('servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
         # deep histories: under load Fast DDS repairs what loaded sockets dropped in bursts of
         # up to seconds of messages, which a shallow keep-last history would mostly discard
-        sub(DiagnosticStatus, 'servo/state', self._on_state, 10)
+        sub(DiagnosticArray, 'servo/state', self._on_state, HISTORY_DEPTH)
+        sub(JointState, desired_topic(fset), self._on_desired, DESIRED_QOS)
         sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, HISTORY_DEPTH)
         sub(JointState, 'detector/measurement', self._on_meas, HISTORY_DEPTH)
         if collect:
             sub(JointState, f'features/{fset}', self._on_features, HISTORY_DEPTH)
-            sub(TwistStamped, 'camera/cmd_vel_stamped', self._on_twist, HISTORY_DEPTH)
+            sub(TwistStamped, 'camera/cmd_vel', self._on_twist, HISTORY_DEPTH)
         from std_srvs.srv import SetBool
         for service in ('/arm_sim/go_desired', '/features/teach', '/arm_sim/go_start'):
             self.client(service)
@@ -103,22 +119,23 @@ class Supervisor:
         return stamp.sec + stamp.nanosec * 1e-9
 
     def _on_state(self, msg) -> None:
+        from sphere_servo.ros.diagnostics import state_of
+        got = state_of(msg)
+        if got is None:
+            return
+        message, self.state_values = got
         try:
-            self.state = ServoState(msg.message)
+            self.state = ServoState(message)
         except ValueError:
             self.state = None
-            self.node.get_logger().warn(f'unknown servo state {msg.message!r}',
+            self.node.get_logger().warn(f'unknown servo state {message!r}',
                                         throttle_duration_sec=5.0)
-        self.state_values = vals = {kv.key: kv.value for kv in msg.values}
-        try:
-            self.state_stamp = max(self.state_stamp, float(vals.get('stamp', '-1')))
-        except ValueError:
-            pass
-        if self.state not in (ServoState.SERVOING, ServoState.CONVERGED):
+        ns = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        self.state_image = t = ns / NS if ns else None  # a zero stamp answers no image
+        if t is None:
             return
-        try:
-            t = float(vals.get('stamp', '-1'))
-        except ValueError:
+        self.state_stamp = max(self.state_stamp, t)
+        if self.state not in (ServoState.SERVOING, ServoState.CONVERGED):
             return
         if t < self.t_start:
             return
@@ -127,7 +144,7 @@ class Supervisor:
         if self.state is ServoState.CONVERGED and (self.t_converged is None
                                                    or t < self.t_converged):
             self.t_converged = t
-            self.iterations_converged = int(vals.get('iteration', -1))
+            self.iterations_converged = int(self.state_values.get('iteration', -1))
 
     def _on_pose(self, msg) -> None:
         """
@@ -149,21 +166,33 @@ class Supervisor:
         if self.collect:
             self.measurements.append((t, dict(zip(msg.name, msg.position))))
 
+    def _on_desired(self, msg) -> None:
+        self.desired = (stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec),
+                        np.array(msg.position))
+        self.desired_count += 1
+
     def _on_features(self, msg) -> None:
-        if msg.name:
+        if msg.name and self.desired is not None:
             self.features.append((self._t(msg.header.stamp), np.array(msg.position),
-                                  np.array(msg.velocity)))
+                                  self.desired[1]))
 
     def _on_twist(self, msg) -> None:
+        t = self._t(msg.header.stamp)
+        if t == 0.0:  # the watchdog's: it answers no image
+            return
         tw = msg.twist
-        self.twists.append((self._t(msg.header.stamp), np.array(
-            [tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y,
-             tw.angular.z])))
+        self.twists.append((t, np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x,
+                                         tw.angular.y, tw.angular.z])))
+
+    def _spin_once(self, timeout: float) -> None:
+        if self.stop():
+            raise KeyboardInterrupt
+        self.executor.spin_once(timeout_sec=timeout)
 
     def spin(self, seconds: float) -> None:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+            self._spin_once(min(0.02, max(0.0, end - time.monotonic())))
 
     def wait(self, pred, timeout: float, alive=lambda: True) -> bool:
         end = time.monotonic() + timeout
@@ -172,7 +201,7 @@ class Supervisor:
                 return True
             if not alive():
                 return False
-            self.executor.spin_once(timeout_sec=0.02)
+            self._spin_once(0.02)
         return bool(pred())
 
     def call(self, service: str, timeout: float = 30.0, enable: bool | None = None):
@@ -226,13 +255,14 @@ class Supervisor:
         """
         Teach: arm to the desired pose → teach its image → arm to the start → enable servo.
 
-        The servo must be disabled meanwhile (``start_enabled: false``): a teach reply can
-        name an image taken before the jump, and a servo acting on it would move the arm
-        away from the pose being taught.
+        The servo must be disabled meanwhile (``start_enabled: false``): a teach can take an
+        image from before the jump (it is then taught again), and a servo acting on it would
+        move the arm away from the pose being taught. The servo is enabled once it holds the
+        desired features of the image taught last (its state's ``desired_stamp``).
         """
         from sphere_servo.sim.arm import pose_from_xyz_rpy
         cMo_d = pose_from_xyz_rpy(*np.split(np.asarray(
-            node_params(self.config, 'arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
+            self.scenario.node_params('arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
             float), 2))
         res = self.call('/arm_sim/go_desired')
         if not res.success:
@@ -250,15 +280,19 @@ class Supervisor:
         self.oMc_taught = self.last_pose[1]
         end = time.monotonic() + 30.0
         while True:  # teach the first measurement taken at the desired pose
+            count = self.desired_count
             res = self.call('/features/teach')
-            if res.success and _stamp_in(res.message) >= t_desired - 1e-9:
+            # the new desired, on its topic, carries the taught image's header
+            if res.success and self.wait(lambda: self.desired_count > count, 5.0, alive) \
+                    and self.desired[0] / NS >= t_desired - 1e-9:
                 break
             if time.monotonic() > end or not alive():
                 raise LaunchError(f'teach failed: {res.message} (desired pose at '
                                   f'{t_desired:.6f} s, last measurement '
                                   f'{self.last_meas_stamp:.6f} s)')
             self.spin(0.2)
-        log(res.message)
+        taught = stamp_text(self.desired[0])
+        log(f'desired features taught from the image stamped {taught}')
         res = self.call('/arm_sim/go_start')
         if not res.success:
             raise LaunchError(f'go_start failed: {res.message}')
@@ -271,6 +305,10 @@ class Supervisor:
         # start-pose image, it would answer (and count) a frame from the desired pose
         if not self.wait(lambda: self.state_stamp >= self.t_start - 1e-9, 30.0, alive):
             raise LaunchError('the servo did not answer an image of the start pose')
+        if not self.wait(lambda: self.state_values.get('desired_stamp') == taught, 30.0, alive):
+            raise LaunchError(f'the servo did not get the desired features taught from the '
+                              f'image stamped {taught} (it holds '
+                              f"{self.state_values.get('desired_stamp', 'none')})")
         self.enable_servo(log)
 
     def enable_servo(self, log) -> None:
@@ -281,11 +319,8 @@ class Supervisor:
 
     def converged(self) -> bool:
         """Tell whether the servo reports convergence on an image taken after the jump."""
-        try:
-            stamp = float(self.state_values.get('stamp', '-1'))
-        except ValueError:
-            return False
-        return self.state is ServoState.CONVERGED and stamp >= self.t_start
+        return self.state is ServoState.CONVERGED and self.state_image is not None \
+            and self.state_image >= self.t_start
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -295,10 +330,9 @@ class Supervisor:
 
 def _stamp_in(message: str) -> float:
     """
-    Read the stamp 'sec.nanosec' that ends a teach or go_* service reply.
+    Read the stamp 'sec.nanosec' that ends an arm_sim go_* service reply (-1 if none).
 
-    The features node's teach reply and arm_sim's go_* replies end with it; -1 if there
-    is none.
+    arm_sim's jumps end their reply with the stamp of the first image at the new pose.
     """
     try:
         return float(message.rsplit(' ', 1)[-1])

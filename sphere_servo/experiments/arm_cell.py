@@ -1,5 +1,5 @@
 """
-The UR5 cell of the experiments: the arm placed as in ``config/arm_sim.yaml``, in the loop.
+The UR5 cell of the experiments: the arm placed as in ``config/params/arm_sim.yaml``, in the loop.
 
 - :func:`make_arm`  the UR5 with the config's target placement, hand-eye and speed, and
   optionally a tighter safety limit on some joints (the robot cell of the joint-limit
@@ -25,7 +25,7 @@ from sphere_servo.sim.loop import closed_loop, FeatureSetSpec, LoopResult
 from sphere_servo.sim.observers import exact_observer
 from sphere_servo.sim.plants import ArmPlant, LoopOutcome
 
-#: arm placement of config/arm_sim.yaml: target in the world, hand-eye, IK seed, speed
+#: arm placement of config/params/arm_sim.yaml: target in the world, hand-eye, IK seed, speed
 ARM_KW = {'wMo': ([0.5, 0.1, 0.05], [np.pi, 0.0, -np.pi / 2]),
           'tool0Mc': ([0.0, -0.04, 0.02], [0.0, 0.0, 0.0]), 'velocity_scale': 0.5}
 ARM_SEED = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
@@ -33,7 +33,7 @@ ARM_SEED = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
 
 def make_arm(cell_limits: dict | None = None) -> ArmModel:
     """
-    Build the UR5 placed as in ``config/arm_sim.yaml``.
+    Build the UR5 placed as in ``config/params/arm_sim.yaml``.
 
     ``cell_limits`` {joint index: (lo, hi)} tightens the URDF position limits (None: keep
     that side).

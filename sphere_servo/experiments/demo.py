@@ -28,7 +28,7 @@ from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.measurement import observe
 from sphere_servo.core.targets import cc_target, special_sphere
 from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
-from sphere_servo.pipeline.config import ConfigError, find_config, load_config, node_params
+from sphere_servo.pipeline.config import ConfigError, scenario
 from sphere_servo.ros.vectors import FEATURE_NAMES
 from sphere_servo.sim.loop import run_loop
 from sphere_servo.sim.plots import fig3, fig4, Trajectory
@@ -128,7 +128,8 @@ def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Pa
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--out', default='runs', help='parent folder of the run folder')
-    ap.add_argument('--config', default='special_sphere', help='launcher config')
+    ap.add_argument('--config', '--scenario', dest='scenario', default='special_sphere',
+                    help='launcher scenario (config/scenarios/<name>.yaml)')
     ap.add_argument('--timeout', type=float, default=None, help='wall seconds')
     ap.add_argument('--no-record', action='store_true', help='do not record a rosbag2')
     ap.add_argument('--headless', action='store_true', help='kinematic loop, no ROS')
@@ -141,17 +142,17 @@ def main(argv=None) -> int:
         ok, files = headless(out, args.gain, args.dt)
     else:
         try:
-            config = load_config(find_config(args.config))
+            sc = scenario(args.scenario)
         except ConfigError as exc:
             print(f'demo: {exc}', file=sys.stderr)
             return launcher.ExitCode.BAD_CONFIG
-        print(f'demo: {args.config} over ROS 2 (arm_sim, detector, features, servo)')
+        print(f'demo: {args.scenario} over ROS 2 ({", ".join(sc.nodes)})')
         bag = None if args.no_record else str(out / 'bag')
-        code, sup, _ = launcher.run(config, until_converged=True, timeout=args.timeout,
+        code, sup, _ = launcher.run(sc, until_converged=True, timeout=args.timeout,
                                     record=bag, collect=True)
         ok = code == launcher.ExitCode.OK
-        fset = node_params(config, 'servo').get('feature_set', 's_n')
-        files = ros_figures(sup, out, f'{args.config}: {fset} over ROS 2', fset)
+        fset = sc.node_params('servo').get('feature_set', 's_n')
+        files = ros_figures(sup, out, f'{args.scenario}: {fset} over ROS 2', fset)
         if bag and Path(bag).exists():
             files.append(Path(bag))
     print('\nwrote:')

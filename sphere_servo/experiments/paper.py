@@ -30,7 +30,7 @@ from sphere_servo.experiments.paper_report import figures, fmt, metrics, write_r
 from sphere_servo.experiments.scenarios import (ADAPTIVE, CALIB_ERROR, CMO_DESIRED, DT,
                                                 IMAGE_TOL, make_target, PAPER_GAIN, Scenario,
                                                 SCENARIOS)
-from sphere_servo.pipeline.config import find_config, load_config, node_params
+from sphere_servo.pipeline.config import scenario
 from sphere_servo.sim.loop import run_loop
 from sphere_servo.sim.observers import exact_observer, image_observer
 from sphere_servo.sim.plots import shrink_png
@@ -114,11 +114,11 @@ def run_ros(names, out: Path, log=sys.stdout) -> list[str]:
         sc = SCENARIOS[name]
         if not sc.ros:
             continue
-        cfg = load_config(find_config(sc.ros))
+        cfg = scenario(sc.ros)
         code, sup, _ = launcher.run(cfg, until_converged=True, collect=True, out=log)
         sub = out / f'ros_{sc.ros}'
         sub.mkdir(exist_ok=True)
-        fset = node_params(cfg, 'servo').get('feature_set', 's_n')
+        fset = cfg.node_params('servo').get('feature_set', 's_n')
         figs = [] if sup is None else [
             shrink_png(f) for f in ros_figures(sup, sub, f'{sc.ros} over ROS 2', fset)]
         err = None if sup is None else sup.final_pose_error()

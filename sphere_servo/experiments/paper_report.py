@@ -165,9 +165,9 @@ def write_report(results: list, out: Path, seconds: float, quick: bool = False) 
              f'constant λ = {PAPER_GAIN} in the ideal cases, ViSP adaptive gain '
              f"(λ₀ = {ADAPTIVE.lambda_0}, λ∞ = {ADAPTIVE.lambda_inf}, λ'₀ = {ADAPTIVE.slope_0}) "
              f'with errors; converged when ‖s − s*‖₂ < {IMAGE_TOL}. The joint-limit scenario '
-             'has the simulated UR5 (config/arm_sim.yaml placement, half joint speed) in the '
-             'loop and stops at the first step that meets a joint limit. Pixel distances are '
-             'in the true 640×480 image.', '']
+             'has the simulated UR5 (config/params/arm_sim.yaml placement, half joint speed) '
+             'in the loop and stops at the first step that meets a joint limit. Pixel distances '
+             'are in the true 640×480 image.', '']
     for r in results:
         sc = r.scenario
         lines += [f'## {sc.title}', '', f'`{sc.name}` — start pose (target in camera) '

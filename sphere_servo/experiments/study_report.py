@@ -230,10 +230,11 @@ def write_report(rows: list, out: Path, n: int, n_images: int, wall: float | Non
     n_arm = len({r['idx'] for r in rows if r['cond'] == 'arm' and not r.get('excluded')})
     cell, cell_limit_text = cell_limit()
     lines += ['', 'Joint-limit hits are counted in the `arm` condition only: the UR5 in the '
-              'loop (config/arm_sim.yaml placement, half joint speed) with its own limits plus '
-              f"the cell's safety limit {cell_limit_text} of the docs/paper joint-limit "
-              f'scenario; {n_arm} of the {n} starts are reachable inside those limits and are '
-              'counted there. The other conditions servo a free-flying camera.', '',
+              'loop (config/params/arm_sim.yaml placement, half joint speed) with its own '
+              f"limits plus the cell's safety limit {cell_limit_text} of the docs/paper "
+              f'joint-limit scenario; {n_arm} of the {n} starts are reachable inside those '
+              'limits and are counted there. The other conditions servo a free-flying camera.',
+              '',
               f's_n draws a shorter camera path than s_cc in **{100 * frac:.1f} %** of the '
               f"{npairs} ideal starts where both converge (the paper's §IV.A.2 claim holds "
               'for most starts, not all).', '', '![study](study.png)', '',

@@ -10,10 +10,15 @@ Clock modes (``clock_mode``):
 - ``realtime``: :meth:`ArmSimCore.on_tick` (a wall timer at ``camera_rate``) advances the
   simulation one period under the last command; a command only replaces that command.
 - ``lockstep``: each command advances the simulation exactly one period and yields exactly
-  one frame (an invalid command advances the clock with the arm held still, so a loop never
-  stalls). The first frame, and the one after a jump, is *re-published* unchanged (same
+  one frame (an invalid or refused command advances the clock with the arm held still, so a
+  loop never stalls). The first frame, and the one after a jump, is *re-published* unchanged (same
   stamp) until the next command arrives (:attr:`ArmSimCore.waiting`), so a subscriber that
   connects late still gets it.
+
+Commands are camera twists in :data:`~sphere_servo.sim.arm.CAMERA_FRAME` (the current
+camera optical frame); one that is not finite, or is in another frame, is refused and not
+executed: in realtime the last valid command stays (until the watchdog), in lockstep the
+period passes with the arm held still.
 
 Jumps (the node's services): ``reset`` (start configuration, at rest, watchdog re-armed,
 sim time kept), ``go_start`` / ``go_desired`` (the IK of ``start_cMo`` / ``desired_cMo``,
@@ -30,9 +35,10 @@ import pinocchio as pin
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import make_target, Target
 from sphere_servo.core.types import Image
-from sphere_servo.pipeline.common import Level, Reply
+from sphere_servo.pipeline.common import Level, NodeStatus, Reply
 from sphere_servo.pipeline.params import ArmSimParams, ParameterError
-from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy, Status, StepInfo, TwistError
+from sphere_servo.sim.arm import (ArmModel, CAMERA_FRAME, pose_from_xyz_rpy, Status, StepInfo,
+                                  TwistError)
 from sphere_servo.vision.renderer import Renderer
 
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
@@ -51,6 +57,7 @@ class SimFrame:
     q, qdot      joint positions and the applied velocities.
     info         what the last step did (status, joints at a limit, σ_min, scale).
     step_error   why the last step failed, the arm then held still ('' if it did not).
+    command_error  why the last command was refused ('' if it was not).
     """
 
     t: float
@@ -62,6 +69,7 @@ class SimFrame:
     info: StepInfo
     render_error: str = ''
     step_error: str = ''
+    command_error: str = ''
 
     @property
     def stamp_ns(self) -> int:
@@ -70,15 +78,30 @@ class SimFrame:
 
     @property
     def level(self) -> Level:
-        """Return OK, or WARN at a limit, near a singularity, on a timeout."""
-        return LEVELS[self.info.status]
+        """
+        Return how serious the frame's status is.
+
+        ERROR when the step or the render failed; WARN at a limit, near a singularity, on a
+        timeout, or after a refused command; OK else.
+        """
+        if self.step_error or self.render_error:
+            return Level.ERROR
+        return max(LEVELS[self.info.status], Level.WARN if self.command_error else Level.OK)
 
     def status_values(self) -> dict[str, str]:
         """Return the status values, key → text, in the published order."""
         st = self.info
-        return {'joints': ','.join(st.joints), 'sigma_min': f'{st.sigma_min:.5f}',
-                'scale': f'{st.scale:.4f}', 'sim_time': f'{self.t:.6f}',
-                'detail': st.message}
+        v = {'joints': ','.join(st.joints), 'sigma_min': f'{st.sigma_min:.5f}',
+             'scale': f'{st.scale:.4f}', 'sim_time': f'{self.t:.6f}', 'detail': st.message}
+        for key, text in (('command_error', self.command_error),
+                          ('step_error', self.step_error), ('render_error', self.render_error)):
+            if text:
+                v[key] = text
+        return v
+
+    def status(self) -> NodeStatus:
+        """Return the node's status at this frame, whose state is the arm's step ``Status``."""
+        return NodeStatus(self.info.status, self.level, self.status_values())
 
 
 @dataclass(frozen=True)
@@ -90,11 +113,25 @@ class Jump(Reply):
 
 @dataclass(frozen=True)
 class CommandOutcome:
-    """A received twist: whether it was usable, and the frame it produced (lockstep)."""
+    """
+    A received twist: whether it was executed, and the frame it produced (lockstep).
+
+    ``reason``: why it was refused ('' when it was executed).
+    """
 
     valid: bool
     frame: SimFrame | None = None
-    refusal: str = ''  # why the twist was refused ('' if valid)
+    reason: str = ''
+
+
+def command_refusal(v_c: np.ndarray, frame_id: str) -> str:
+    """Return why a camera twist ``v_c`` in frame ``frame_id`` is refused ('' if it is not)."""
+    if frame_id != CAMERA_FRAME:
+        return (f'a camera twist in frame {frame_id!r}: arm_sim takes twists in '
+                f'{CAMERA_FRAME!r} only')
+    if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
+        return f'a non-finite camera twist {v_c.ravel().tolist()}'
+    return ''
 
 
 def sim_camera(p: ArmSimParams) -> CameraIntrinsics:
@@ -136,6 +173,7 @@ class ArmSimCore:
         self.arm.reset()
         self.waiting = self.lockstep  # re-publish the first frame until a command comes
         self._step_error = ''
+        self._command_error = ''  # why the last command was refused
 
     def named(self, which: str) -> np.ndarray:
         """
@@ -155,17 +193,28 @@ class ArmSimCore:
         return q
 
     # --- command and time -----------------------------------------------------------
-    def on_command(self, v_c) -> CommandOutcome:
-        """Take a camera twist (6,); in lockstep, step one period and return its frame."""
-        refusal = ''
-        try:  # the arm refuses a non-finite or unphysical twist and stops at once
-            self.arm.command(np.asarray(v_c, dtype=float))
-        except TwistError as exc:
-            refusal = str(exc)
+    def on_command(self, v_c, frame_id: str = CAMERA_FRAME) -> CommandOutcome:
+        """
+        Take a camera twist (6,) in frame ``frame_id``; in lockstep, step one period.
+
+        A refused twist (:func:`command_refusal`, or one the arm refuses: beyond its
+        physical bound) is not executed and stops the arm at once; in lockstep the period
+        passes all the same with the arm held still, so the loop gets its image.
+        """
+        v_c = np.asarray(v_c, dtype=float)
+        reason = command_refusal(v_c, frame_id)
+        if reason:
+            self.arm.stop()
+        else:
+            try:
+                self.arm.command(v_c)
+            except TwistError as exc:  # the arm has stopped
+                reason = str(exc)
+        self._command_error = reason
         if not self.lockstep:
-            return CommandOutcome(not refusal, refusal=refusal)
-        self.waiting = False  # a refused command still steps: the loop gets its image
-        return CommandOutcome(not refusal, self.advance(), refusal)
+            return CommandOutcome(not reason, reason=reason)
+        self.waiting = False
+        return CommandOutcome(not reason, self.advance(), reason)
 
     def on_tick(self) -> SimFrame:
         """Step one period under the last command (realtime) and return the frame."""
@@ -198,7 +247,7 @@ class ArmSimCore:
             img = np.zeros((self.camera.height, self.camera.width, 3), np.uint8)
         return SimFrame(START_TIME + self.arm.t, img, cMo.inverse(),
                         tuple(self.arm.joint_names), self.arm.q.copy(), self.arm.qdot.copy(),
-                        self.arm.info, render_error, self._step_error)
+                        self.arm.info, render_error, self._step_error, self._command_error)
 
     # --- jumps ----------------------------------------------------------------------
     def _jump(self, q, what: str) -> Jump:

@@ -1,13 +1,14 @@
 """
-What the node cores share (no ROS): diagnostic levels, stamps, refusals.
+What the node cores share (no ROS): diagnostic levels, node statuses, stamps, refusals.
 
 Stamps are int nanoseconds (``sec · 10⁹ + nanosec`` of a ROS header); :func:`stamp_text`
-writes one as ROS tools print a time, ``SEC.NANOSEC`` with nine digits.
+writes one as ROS tools print a time, ``SEC.NANOSEC`` with nine digits. A stamp of 0 means
+"no image" (a message that answers none), as many ROS tools read a zero stamp as unset.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from enum import IntEnum
+from dataclasses import dataclass, field
+from enum import Enum, IntEnum
 
 NS = 1_000_000_000
 
@@ -18,6 +19,27 @@ class Level(IntEnum):
     OK = 0
     WARN = 1
     ERROR = 2
+
+
+@dataclass(frozen=True)
+class NodeStatus:
+    """
+    A node's status: its state, how serious it is, and named values (key → text).
+
+    ``state`` is one of the node's state enums (``ServoState``, ``DetectStatus``, ``Status``,
+    ``FeaturesState``), whose value is the published status message; the ros layer puts it
+    on the node's ``~/state`` and on ``/diagnostics`` (``diagnostic_msgs/DiagnosticStatus``:
+    level, message, values).
+    """
+
+    state: Enum
+    level: Level
+    values: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def message(self) -> str:
+        """Return the status message: the state's value."""
+        return self.state.value
 
 
 @dataclass(frozen=True)

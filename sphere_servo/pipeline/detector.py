@@ -7,7 +7,7 @@ calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``) and runs the visi
 :class:`~sphere_servo.vision.detector.Detector` on each image. A bad image (unsupported
 encoding, ``step``/``data`` lengths that disagree, zero size) or a missing camera is
 *rejected*: the result says why, and its measurement is empty (target lost, so the servo
-stops).
+stops). :meth:`DetectorCore.status` is the node's status: the latest image's outcome.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from enum import Enum
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import make_target
 from sphere_servo.core.types import Image
-from sphere_servo.pipeline.common import Refusal
+from sphere_servo.pipeline.common import Level, NodeStatus, Refusal
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
@@ -37,11 +37,16 @@ def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[fl
 
 
 class DetectStatus(Enum):
-    """What became of one image."""
+    """What became of one image (and ``waiting``, the node's state before its first image)."""
 
     FOUND = 'found'          # the sphere's conic was measured (marks may still be missing)
     NOT_FOUND = 'not found'  # a valid image without the sphere
     REJECTED = 'rejected'    # a bad buffer, or no camera yet: nothing was detected
+    WAITING = 'waiting'      # no image yet
+
+
+LEVELS = {DetectStatus.FOUND: Level.OK, DetectStatus.NOT_FOUND: Level.WARN,
+          DetectStatus.REJECTED: Level.ERROR, DetectStatus.WAITING: Level.OK}
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,24 @@ class DetectorCore:
         self.params = params
         self.detector = Detector.for_target(make_target(params.target_kind))
         self.camera: CameraIntrinsics | None = None
+        self.last: DetectorOutput | None = None
+        self.counts = {status: 0 for status in DetectStatus if status is not DetectStatus.WAITING}
+
+    def status(self) -> NodeStatus:
+        """
+        Return the node's status: the latest image's outcome, and counts.
+
+        Values: ``images``, ``found``, ``not_found``, ``rejected`` (counts so far), ``camera``
+        (``yes`` once a usable camera_info came), ``reason`` (why the latest image gave no
+        sphere).
+        """
+        state = DetectStatus.WAITING if self.last is None else self.last.status
+        values = {'images': str(sum(self.counts.values())),
+                  **{k.name.lower(): str(n) for k, n in self.counts.items()},
+                  'camera': 'yes' if self.camera is not None else 'no'}
+        if self.last is not None and self.last.reason:
+            values['reason'] = self.last.reason
+        return NodeStatus(state, LEVELS[state], values)
 
     def on_camera_info(self, width: int, height: int, k: Sequence[float],
                        d: Sequence[float] | None) -> CameraIntrinsics | Refusal:
@@ -83,7 +106,9 @@ class DetectorCore:
     def on_image(self, height: int, width: int, step: int, encoding: str,
                  data) -> DetectorOutput:
         """Detect in one image buffer (``sensor_msgs/Image`` fields) with the latest camera."""
-        return self.detect(height, width, step, encoding, data, self.camera)
+        self.last = out = self.detect(height, width, step, encoding, data, self.camera)
+        self.counts[out.status] += 1
+        return out
 
     def detect(self, height: int, width: int, step: int, encoding: str, data,
                camera: CameraIntrinsics | None) -> DetectorOutput:

@@ -3,7 +3,10 @@ The features' logic without ROS: measurements → the paper's feature sets and t
 
 :class:`FeaturesCore` anchors every published set (``sets``) on one desired observation and
 turns each measurement into ``(s, s*)`` per set. Nothing is produced before a desired
-exists. Desired features (``desired_source``):
+exists; the desired of each set (:meth:`FeaturesCore.desired_features`) is published once
+per teach, with the stamp of the image it came from (:attr:`FeaturesCore.desired_stamp_ns`;
+0 for a pose or an image file, which are not images of the run). Desired features
+(``desired_source``):
 
 - ``teach``: :meth:`FeaturesCore.teach` makes the latest measurement the desired one
   (teach by showing);
@@ -27,7 +30,7 @@ from sphere_servo.core.features import FeatureSet, make_feature_set
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import Observation, observe
 from sphere_servo.core.targets import make_target, Target
-from sphere_servo.pipeline.common import Refusal, Reply, stamp_text
+from sphere_servo.pipeline.common import Level, NodeStatus, Refusal, Reply, stamp_text
 from sphere_servo.pipeline.detector import camera_from_info
 from sphere_servo.pipeline.params import FeaturesParams, ParameterError
 from sphere_servo.pipeline.vectors import Measurement, SetFeatures
@@ -41,6 +44,15 @@ class DesiredSource(str, Enum):
     TEACH = 'teach'
     POSE = 'pose'
     IMAGE = 'image'
+
+
+class FeaturesState(str, Enum):
+    """What the features node is doing (the value is the published status message)."""
+
+    WAITING = 'waiting'          # no measurement yet
+    NO_DESIRED = 'no desired'    # measurements come, no desired yet: nothing published
+    TRACKING = 'tracking'        # features of every set published
+    TARGET_LOST = 'target lost'  # the target or a mark is lost: empty features published
 
 
 @dataclass(frozen=True)
@@ -100,12 +112,14 @@ class FeaturesCore:
         self.sets: dict[str, FeatureSet] = {}
         self.latest: tuple[int, Measurement] | None = None  # (stamp, measurement)
         self.desired_bgr: np.ndarray | None = None
+        self.desired_stamp_ns: int | None = None  # the image the desired came from
+        self.last: FeaturesOutput | None = None
         if self.source is DesiredSource.POSE:
             if not self.target.is_sphere:
                 raise ParameterError("desired_source 'pose' needs a spherical target model")
             cMo = pose_from_xyz_rpy(params.desired_cMo[:3], params.desired_cMo[3:])
             try:
-                self.set_desired(observe(cMo, self.target))
+                self.set_desired(observe(cMo, self.target), 0)
             except GeometryError as exc:
                 raise ParameterError(f'desired_cMo does not show the target: {exc}') from None
         elif self.source is DesiredSource.IMAGE:
@@ -125,9 +139,18 @@ class FeaturesCore:
         """Return the observation of a measurement (MeasurementError if lost)."""
         return meas.observation(self.kind)
 
-    def set_desired(self, obs: Observation) -> None:
-        """Anchor every published set on ``obs`` (raises GeometryError if it cannot be)."""
+    def set_desired(self, obs: Observation, stamp_ns: int) -> None:
+        """
+        Anchor every published set on ``obs``, of the image stamped ``stamp_ns``.
+
+        Raises GeometryError if it cannot be (the desired held stays).
+        """
         self.sets = {name: make_feature_set(name, obs) for name in self.params.sets}
+        self.desired_stamp_ns = int(stamp_ns)
+
+    def desired_features(self) -> dict[str, np.ndarray]:
+        """Return s* of every published set ({} before a desired is set)."""
+        return {name: fs.desired for name, fs in self.sets.items()}
 
     def describe_desired(self) -> str:
         """Return a line on the desired features (for the log)."""
@@ -150,7 +173,7 @@ class FeaturesCore:
             if isinstance(cam, Refusal):
                 raise ValueError(cam.reason)
             obs = observation_from_image(self.desired_bgr, self.target, cam)
-            self.set_desired(obs)
+            self.set_desired(obs, 0)
         except (ValueError, GeometryError) as exc:
             return Refusal(f'desired image {self.params.desired_image!r} unusable: {exc}')
         return obs
@@ -161,7 +184,7 @@ class FeaturesCore:
             return Taught(False, 'no measurement received yet')
         stamp_ns, meas = self.latest
         try:
-            self.set_desired(self.observation(meas))
+            self.set_desired(self.observation(meas), stamp_ns)
         except GeometryError as exc:
             return Taught(False, f'cannot teach this image: {exc}')
         return Taught(True, 'desired features taught from the image stamped '
@@ -170,6 +193,7 @@ class FeaturesCore:
     def on_measurement(self, stamp_ns: int, meas: Measurement) -> FeaturesOutput | None:
         """Return the features of every set (None before a desired is set)."""
         self.latest = (stamp_ns, meas)
+        self.last = None
         if not self.sets:
             return None
         try:
@@ -177,5 +201,30 @@ class FeaturesCore:
             values = {name: SetFeatures(fs.features(obs), fs.desired)
                       for name, fs in self.sets.items()}
         except GeometryError as exc:
-            return FeaturesOutput(stamp_ns, lost=str(exc))
-        return FeaturesOutput(stamp_ns, values)
+            self.last = FeaturesOutput(stamp_ns, lost=str(exc))
+        else:
+            self.last = FeaturesOutput(stamp_ns, values)
+        return self.last
+
+    def status(self) -> NodeStatus:
+        """
+        Return the node's status after the latest measurement.
+
+        Values: ``sets``, ``desired_source``, ``stamp`` (the latest measurement's image),
+        ``desired_stamp`` (once a desired is set), ``reason`` (target lost).
+        """
+        values = {'sets': ','.join(self.names), 'desired_source': self.source.value}
+        if self.latest is not None:
+            values['stamp'] = stamp_text(self.latest[0])
+        if self.desired_stamp_ns is not None:
+            values['desired_stamp'] = stamp_text(self.desired_stamp_ns)
+        if self.latest is None:
+            state = FeaturesState.WAITING
+        elif self.last is None:
+            state = FeaturesState.NO_DESIRED
+        elif self.last.lost:
+            state, values['reason'] = FeaturesState.TARGET_LOST, self.last.lost
+        else:
+            state = FeaturesState.TRACKING
+        level = Level.WARN if state is FeaturesState.TARGET_LOST else Level.OK
+        return NodeStatus(state, level, values)

@@ -320,3 +320,9 @@ class ArmSimParams(NodeParams):
         if not self.singular_threshold > self.singular_stop:
             raise ParameterError('singular_threshold must be > singular_stop, got '
                                  f'{self.singular_threshold} <= {self.singular_stop}')
+
+
+# the pipeline's nodes and their parameters, by node name (the sections of a params file)
+NODE_PARAMS: dict[str, type[NodeParams]] = {
+    'arm_sim': ArmSimParams, 'detector': DetectorParams, 'features': FeaturesParams,
+    'servo': ServoParams}

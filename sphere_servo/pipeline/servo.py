@@ -12,6 +12,9 @@ clock (sim time with ``use_sim_time``), ``wall_now`` a monotonic wall clock in s
   so answering a superseded frame (a backlog that Fast DDS delivers late, in a burst,
   under load) would leave several frames in flight and the run would depend on the load.
 - Disabled (``start_enabled: false`` until :meth:`ServoCore.enable`): a zero twist.
+- No desired features yet (:meth:`ServoCore.set_desired` not called, or only refused):
+  a zero twist, state ``no desired``. The servo pairs each features message with the
+  latest desired it holds.
 - Target or a mark lost, unreadable features, or a law that cannot give a finite twist:
   a zero twist, state ``target lost``.
 - Watchdog (:meth:`ServoCore.on_tick`, on the wall clock, since in lockstep sim time
@@ -31,10 +34,12 @@ import numpy as np
 from sphere_servo.core.control import AdaptiveGain, VectorController
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Twist
-from sphere_servo.pipeline.common import Level, stamp_text
+from sphere_servo.pipeline.common import Level, NodeStatus, Refusal, stamp_text
 from sphere_servo.pipeline.params import ServoParams
+from sphere_servo.pipeline.vectors import FEATURE_NAMES
 
 LOST = 'the target or a mark is lost'
+NO_DESIRED = 'no desired features yet'
 
 
 class ServoState(str, Enum):
@@ -42,6 +47,7 @@ class ServoState(str, Enum):
 
     WAITING = 'waiting'          # no features yet
     DISABLED = 'disabled'        # features come, the servo is not enabled: zero twists
+    NO_DESIRED = 'no desired'    # enabled, features come, but no desired yet: zero twists
     SERVOING = 'servoing'        # a twist from the law
     CONVERGED = 'converged'      # ‖s − s*‖ < tol: zero twist
     TARGET_LOST = 'target lost'  # the target or a mark lost, or no valid twist: zero twist
@@ -71,6 +77,8 @@ class ServoCommand:
 
     twist       (6,) ``(v, ω)`` in the current camera frame, m/s and rad/s.
     stamp_ns    the answered image's stamp; None for the watchdog's commands.
+    desired_stamp_ns  the stamp of the image the desired features held came from (0: not
+                from an image of the run; None: no desired yet).
     reason      why the twist is zero ('' when the law gave it).
     fault       the error that left no valid twist ('' if none): worth an error log.
     error_norm, gain, saturated   the law's output (None unless it ran).
@@ -90,6 +98,7 @@ class ServoCommand:
     gain: float | None = None
     saturated: bool | None = None
     changed: bool = False
+    desired_stamp_ns: int | None = None
 
     def values(self, image_age_ns: int | None = None) -> dict[str, str]:
         """
@@ -113,7 +122,13 @@ class ServoCommand:
         v['iteration'] = str(self.iteration)
         if self.stamp_ns is not None:
             v['stamp'] = stamp_text(self.stamp_ns)
+        if self.desired_stamp_ns is not None:
+            v['desired_stamp'] = stamp_text(self.desired_stamp_ns)
         return v
+
+    def status(self, image_age_ns: int | None = None) -> NodeStatus:
+        """Return the servo's status with this command (see :meth:`values`)."""
+        return NodeStatus(self.state, self.level, self.values(image_age_ns))
 
 
 def law_options(p: ServoParams) -> dict:
@@ -143,18 +158,34 @@ class ServoCore:
         self.skipped = 0        # features skipped as older than max_image_age
         self.last_stamp_ns: int | None = None  # the image answered last
         self.last_rx: float | None = None      # wall time of the last usable features
+        self.size = len(FEATURE_NAMES[self.feature_set])
+        self.s_star: np.ndarray | None = None   # the desired features
+        self.desired_stamp_ns: int | None = None
+
+    def set_desired(self, s_star, stamp_ns: int) -> Refusal | None:
+        """
+        Hold ``s_star`` as the desired features, from the image stamped ``stamp_ns``.
+
+        Refused (the desired held stays) unless it has the set's size and is finite.
+        """
+        s_star = np.asarray(s_star, dtype=float)
+        if s_star.shape != (self.size,) or not np.all(np.isfinite(s_star)):
+            return Refusal(f'desired {self.feature_set} needs {self.size} finite values, got '
+                           f'{s_star.ravel().tolist()}')
+        self.s_star, self.desired_stamp_ns = s_star, int(stamp_ns)
+        return None
 
     def enable(self, on: bool) -> None:
         """Start (True) or stop (False) servoing; disabled, every answer is a zero twist."""
         self.enabled = bool(on)
 
-    def on_features(self, stamp_ns: int, s, s_star, now_ns: int, wall_now: float,
+    def on_features(self, stamp_ns: int, s, now_ns: int, wall_now: float,
                     invalid: str = '') -> ServoCommand | Unanswered:
         """
-        Answer the features of the image stamped ``stamp_ns``.
+        Answer the features ``s`` of the image stamped ``stamp_ns``, against the desired held.
 
-        ``s`` and ``s_star`` (6,), or None when the target or a mark is lost; ``invalid``:
-        why the features could not be read (they are then unusable: target lost).
+        ``s`` (6,), or None when the target or a mark is lost; ``invalid``: why the features
+        could not be read (they are then unusable: target lost).
         """
         age_ns = now_ns - stamp_ns
         if stamp_ns == self.last_stamp_ns:  # the same image again (a re-publication)
@@ -167,12 +198,15 @@ class ServoCore:
         if not self.enabled:
             return self._command(ServoState.DISABLED, Level.OK, stamp_ns=stamp_ns)
         self.iteration += 1
+        if self.s_star is None:
+            return self._command(ServoState.NO_DESIRED, Level.WARN, stamp_ns=stamp_ns,
+                                 reason=NO_DESIRED)
         if invalid:
             return self._stop(ServoState.TARGET_LOST, invalid, stamp_ns, fault=invalid)
         if s is None:
             return self._stop(ServoState.TARGET_LOST, LOST, stamp_ns)
         try:
-            out = self.law.compute(s, s_star)
+            out = self.law.compute(s, self.s_star)
         except GeometryError as exc:  # MeasurementError, ControlError
             return self._stop(ServoState.TARGET_LOST, str(exc), stamp_ns, fault=str(exc))
         return self._command(ServoState.CONVERGED if out.converged else ServoState.SERVOING,
@@ -199,4 +233,5 @@ class ServoCore:
                  **kw) -> ServoCommand:
         changed, self.state = state != self.state, state
         return ServoCommand(np.zeros(6) if twist is None else twist, state, level,
-                            self.iteration, changed=changed, **kw)
+                            self.iteration, changed=changed,
+                            desired_stamp_ns=self.desired_stamp_ns, **kw)

@@ -15,8 +15,9 @@ Measurement (``detector/measurement``)::
 
     No names: the sphere was not detected in that image.
 
-Features (``features/<set>``, set ∈ {s_n, s, s_cc}): the set's labels (FEATURE_NAMES), s,
-s* and s − s*; no names: the target or a mark is lost, the servo must stop.
+Features (``features/<set>``, set ∈ {s_n, s, s_cc}): the set's labels (FEATURE_NAMES) and
+s; no names: the target or a mark is lost, the servo must stop. Desired features
+(``features/<set>/desired``): the same labels and s*.
 """
 from __future__ import annotations
 
@@ -114,10 +115,10 @@ class SetFeatures:
         return self.s - self.s_star
 
 
-def features_from_vectors(name: str, names: Sequence[str], position: Sequence[float],
-                          velocity: Sequence[float]) -> SetFeatures | None:
+def features_from_vectors(name: str, names: Sequence[str],
+                          values: Sequence[float]) -> np.ndarray | None:
     """
-    Read the features of set ``name`` from labels, s and s* (None: the target is lost).
+    Read the values of set ``name`` from its labels and values (None: no labels, target lost).
 
     Raises :class:`MeasurementError` on labels that are not the set's or lengths that
     disagree.
@@ -126,6 +127,7 @@ def features_from_vectors(name: str, names: Sequence[str], position: Sequence[fl
         return None
     if tuple(names) != FEATURE_NAMES[name]:
         raise MeasurementError(f'expected features {FEATURE_NAMES[name]}, got {tuple(names)}')
-    if len(position) != len(names) or len(velocity) != len(names):
-        raise MeasurementError('features message has inconsistent lengths')
-    return SetFeatures(np.array(position, dtype=float), np.array(velocity, dtype=float))
+    if len(values) != len(names):
+        raise MeasurementError(f'features message has {len(names)} names but {len(values)} '
+                               'values')
+    return np.array(values, dtype=float)

@@ -6,8 +6,11 @@ from :class:`sphere_servo.vision.renderer.Renderer`. All topic names are relativ
 namespace them as usual).
 
 Subscribes
-    ``camera/cmd_vel``      geometry_msgs/Twist   camera twist (v, ω) in the *current camera
-                            optical frame*, m/s and rad/s. NaN/inf → ignored with a warning.
+    ``camera/cmd_vel``      geometry_msgs/TwistStamped  camera twist (v, ω) in the *current
+                            camera optical frame*, m/s and rad/s: ``header.frame_id`` must be
+                            ``camera_optical_frame``. Another frame, NaN or inf → refused
+                            with a warning (throttled) and not executed (in lockstep the
+                            period passes with the arm held still).
 Publishes (stamps from the simulation clock, which starts at 1.0 s)
     ``camera/image_raw``    sensor_msgs/Image     rgb8, frame_id ``camera_optical_frame``
     ``camera/camera_info``  sensor_msgs/CameraInfo  the true intrinsics, same header
@@ -15,9 +18,13 @@ Publishes (stamps from the simulation clock, which starts at 1.0 s)
     ``ground_truth/camera_pose``  geometry_msgs/PoseStamped  pose of the camera optical frame
                             in the target frame, ``oMc`` (header.frame_id = ``target_frame``,
                             default ``target``); ``cMo`` is its inverse
-    ``arm_sim/status``      diagnostic_msgs/DiagnosticStatus  level OK/WARN/ERROR, message
-                            ``ok|joint_limit|singularity|timeout``, values: ``joints`` (names
-                            at a limit), ``sigma_min``, ``scale``, ``sim_time``, ``detail``
+    ``~/state``             diagnostic_msgs/DiagnosticArray  per image, its header: level
+                            OK/WARN/ERROR, message ``ok|joint_limit|singularity|timeout``,
+                            values: ``joints`` (names at a limit), ``sigma_min``, ``scale``,
+                            ``sim_time``, ``detail``, then when set ``command_error`` (why
+                            the last command was refused), ``step_error``, ``render_error``
+    ``/diagnostics``        diagnostic_msgs/DiagnosticArray  the same status, on change and
+                            at 1 Hz (hardware_id ``ur5``)
     ``/clock``              rosgraph_msgs/Clock   the simulation time (both clock modes)
 Services (std_srvs/Trigger; private, e.g. ``/arm_sim/go_desired``)
     ``~/reset``        start configuration, at rest, watchdog re-armed
@@ -31,7 +38,7 @@ Clock modes (parameter ``clock_mode``)
     ``realtime``  a wall timer at ``camera_rate`` advances the simulation one period per tick
                   under the last command, then renders and publishes.
     ``lockstep``  each received command advances the simulation exactly one camera period,
-                  then renders and publishes exactly one image (an invalid command advances
+                  then renders and publishes exactly one image (a refused command advances
                   the clock with the arm held still, so a loop never stalls). The first image
                   (and the one after a reset/go_* jump) is published at once and *re-published*
                   unchanged (same stamp) every ``idle_republish_period`` wall seconds until
@@ -47,8 +54,7 @@ jumps, re-publishing) is :class:`~sphere_servo.pipeline.arm_sim.ArmSimCore`'s.
 """
 from __future__ import annotations
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, Twist
+from geometry_msgs.msg import PoseStamped, TwistStamped
 import numpy as np
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -57,12 +63,14 @@ from sphere_servo.pipeline.arm_sim import ArmSimCore, SimFrame
 from sphere_servo.pipeline.params import ArmSimParams
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, image_from_array,
                                           pose_from_se3, stamp_from_ns, twist_to_array)
+from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.sim.arm import CAMERA_FRAME
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 DEPTH, IMAGE_DEPTH = 100, 30  # publisher history (messages)
+HARDWARE_ID = 'ur5'
 
 
 class ArmSim(Node):
@@ -80,30 +88,30 @@ class ArmSim(Node):
         self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', DEPTH)
         self.pub_joints = self.create_publisher(JointState, 'joint_states', DEPTH)
         self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', DEPTH)
-        self.pub_status = self.create_publisher(DiagnosticStatus, 'arm_sim/status', DEPTH)
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
-        self.create_subscription(Twist, 'camera/cmd_vel', self._on_cmd, 10)
+        self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd, 10)
         for name, jump in (('~/reset', core.reset), ('~/go_start', lambda: core.go('start')),
                            ('~/go_desired', lambda: core.go('desired')),
                            ('~/hold', core.hold)):
             self.create_service(Trigger, name, self._service(jump))
         self._last = []  # the last published messages, for lockstep re-publishing
+        frame = core.frame()
+        self.status = StatusPublisher(self, HARDWARE_ID, frame.status())
         if core.lockstep:
             self.create_timer(core.params.idle_republish_period, self._republish)
         else:
             self.create_timer(core.dt, lambda: self._publish(core.on_tick()))
-        self._publish(core.frame())
+        self._publish(frame)
         p = core.params
         self.get_logger().info(
             f'arm_sim: {p.clock_mode} at {p.camera_rate:g} Hz, target {p.target_kind}, '
             f'start q={np.round(core.arm.q, 3).tolist()}, URDF {core.arm.urdf_path}')
 
     # --- input ----------------------------------------------------------------------
-    def _on_cmd(self, msg: Twist) -> None:
-        v = twist_to_array(msg)
-        out = self.core.on_command(v)
+    def _on_cmd(self, msg: TwistStamped) -> None:
+        out = self.core.on_command(twist_to_array(msg.twist), msg.header.frame_id)
         if not out.valid:
-            self.get_logger().warn(f'camera twist refused, arm stopped: {out.refusal}',
+            self.get_logger().warn(f'refusing {out.reason}: not executed, arm stopped',
                                    throttle_duration_sec=1.0)
         if out.frame is not None:
             self._publish(out.frame)
@@ -133,10 +141,7 @@ class ArmSim(Node):
         stamp = stamp_from_ns(f.stamp_ns)
         self.pub_clock.publish(Clock(clock=stamp))
         hdr = Header(stamp=stamp, frame_id=CAMERA_FRAME)
-        status = DiagnosticStatus(
-            level=bytes([f.level]), name='arm_sim', message=f.info.status.value,
-            hardware_id='ur5', values=[KeyValue(key=k, value=v)
-                                       for k, v in f.status_values().items()])
+        state = self.status.state_msg(f.status(), hdr)
         self._last = [
             (self.pub_info, camera_info_from_intrinsics(self.core.camera, hdr)),
             (self.pub_joints, JointState(header=Header(stamp=stamp), name=list(f.joint_names),
@@ -144,9 +149,10 @@ class ArmSim(Node):
             (self.pub_pose, PoseStamped(header=Header(stamp=stamp,
                                                       frame_id=self.core.params.target_frame),
                                         pose=pose_from_se3(f.oMc))),
-            (self.pub_status, status), (self.pub_image, image_from_array(f.image, hdr))]
+            (self.status.pub_state, state), (self.pub_image, image_from_array(f.image, hdr))]
         for pub, msg in self._last:
             pub.publish(msg)
+        self.status.note(f.status())
 
 
 def main(args=None):

@@ -9,6 +9,10 @@ Publishes (header = the image's header, so stamps flow through the pipeline)
                               :mod:`sphere_servo.ros.vectors`; empty = no sphere
     ``detector/overlay``      sensor_msgs/Image       the frame with the detection drawn
                               (only with ``publish_overlay``), for rqt_image_view / Foxglove
+    ``~/state``               diagnostic_msgs/DiagnosticArray  per image, its header:
+                              ``waiting | found | not found | rejected``; values images,
+                              found, not_found, rejected (counts), camera, reason
+    ``/diagnostics``          the same status, on change and at 1 Hz
 
 A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size) or
 a missing ``camera_info`` is logged as a clear error and answered with an empty measurement
@@ -29,9 +33,12 @@ from sphere_servo.pipeline.common import Refusal
 from sphere_servo.pipeline.detector import DetectorCore, DetectStatus
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.ros.conversions import image_from_array
+from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import measurement_msg
 from sphere_servo.vision.draw import draw_detection
+
+HARDWARE_ID = 'camera'  # the eye-in-hand camera whose images the detector reads
 
 
 class DetectorNode(Node):
@@ -44,9 +51,9 @@ class DetectorNode(Node):
                              lambda p: setattr(self.core, 'params', p))
         self.pub = self.create_publisher(JointState, 'detector/measurement', 100)
         self.pub_overlay = self.create_publisher(Image, 'detector/overlay', 2)
+        self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, 10)
-        self.frames = 0
         self._last_error = ('', 0.0)
 
     def _error(self, text: str) -> None:
@@ -63,7 +70,6 @@ class DetectorNode(Node):
                                     throttle_duration_sec=2.0)
 
     def _on_image(self, msg: Image) -> None:
-        self.frames += 1
         out = self.core.on_image(msg.height, msg.width, msg.step, msg.encoding, msg.data)
         if out.status is DetectStatus.REJECTED:
             self._error(f'image rejected: {out.reason}')
@@ -77,6 +83,7 @@ class DetectorNode(Node):
                 img[..., ::-1] if msg.encoding == 'bgr8' else np.dstack([img] * 3))
             self.pub_overlay.publish(image_from_array(draw_detection(rgb, out.detection),
                                                       msg.header))
+        self.status.update(self.core.status(), msg.header)
 
 
 def main(args=None):

@@ -1,16 +1,25 @@
 """
-``features``: measurements → the paper's feature sets, their desired values and errors.
+``features``: measurements → the paper's feature sets and their desired values.
 
 Subscribes
     ``detector/measurement``  sensor_msgs/JointState  (see :mod:`sphere_servo.ros.vectors`)
     ``camera/camera_info``    sensor_msgs/CameraInfo  only for ``desired_source: image``
-Publishes (header = the image's header)
-    ``features/<set>``        sensor_msgs/JointState  for each set in ``sets`` (default s_n):
-                              position = s, velocity = s*, effort = s − s*; empty = target or
-                              a mark lost. Nothing is published before a desired is set.
+Publishes
+    ``features/<set>``          sensor_msgs/JointState  for each set in ``sets`` (default
+                                s_n): ``position`` = s, header = the image's; empty = target
+                                or a mark lost. Nothing is published before a desired is set.
+    ``features/<set>/desired``  sensor_msgs/JointState  s* (``position``), once per teach;
+                                header = that of the image it was taught from (a zero stamp
+                                for ``desired_source`` pose or image); reliable,
+                                transient-local, depth 1: a late subscriber gets it
+    ``~/state``                 diagnostic_msgs/DiagnosticArray  per measurement, its header:
+                                ``waiting | no desired | tracking | target lost``; values
+                                sets, desired_source, stamp, desired_stamp, reason
+    ``/diagnostics``            the same status, on change and at 1 Hz
 Services
     ``~/teach``               std_srvs/Trigger  the latest measurement becomes the desired
-                              one (teach by showing)
+                              one (teach by showing); the new desired is published on
+                              ``features/<set>/desired`` before the reply
 
 Desired features (``desired_source``): ``teach`` (default), ``pose`` (``desired_cMo``) or
 ``image`` (``desired_image``): see :mod:`sphere_servo.pipeline.features`, whose
@@ -18,14 +27,21 @@ Desired features (``desired_source``): ``teach`` (default), ``pose`` (``desired_
 """
 from __future__ import annotations
 
+from builtin_interfaces.msg import Time
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, JointState
 from sphere_servo.pipeline.common import Refusal, stamp_ns
 from sphere_servo.pipeline.features import DesiredSource, FeaturesCore
 from sphere_servo.pipeline.params import FeaturesParams
+from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.params import declare_all, run
-from sphere_servo.ros.vectors import features_msg, measurement_from_msg
+from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
+                                      measurement_from_msg)
+from sphere_servo.sim.arm import CAMERA_FRAME
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+
+HARDWARE_ID = 'camera'  # the eye-in-hand camera whose images the features come from
 
 
 class FeaturesNode(Node):
@@ -36,40 +52,51 @@ class FeaturesNode(Node):
         self.core = FeaturesCore(declare_all(self, FeaturesParams))
         self.pubs = {name: self.create_publisher(JointState, f'features/{name}', 100)
                      for name in self.core.names}
+        self.pubs_desired = {name: self.create_publisher(JointState, desired_topic(name),
+                                                         DESIRED_QOS)
+                             for name in self.core.names}
+        self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
+        self.last_header: Header | None = None  # of the latest measurement
         self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
         self.create_service(Trigger, '~/teach', self._srv_teach)
-        if self.core.has_desired:
-            self.get_logger().info(self.core.describe_desired())
+        if self.core.has_desired:  # from a pose: no image of the run
+            self._publish_desired(Header(stamp=Time(), frame_id=CAMERA_FRAME))
         elif self.core.source is DesiredSource.IMAGE:
             self._info_sub = self.create_subscription(CameraInfo, 'camera/camera_info',
                                                       self._on_info_for_image, 10)
         else:
             self.get_logger().info('waiting for ~/teach to set the desired features')
 
+    def _publish_desired(self, hdr: Header) -> None:
+        for name, s_star in self.core.desired_features().items():
+            self.pubs_desired[name].publish(features_msg(name, hdr, s_star))
+        self.get_logger().info(self.core.describe_desired())
+
     def _on_info_for_image(self, msg: CameraInfo) -> None:
         out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
         if isinstance(out, Refusal):
             self.get_logger().error(out.reason, throttle_duration_sec=5.0)
-        elif out is not None:
-            self.get_logger().info(self.core.describe_desired())
+        elif out is not None:  # a file, not an image of the run: a zero stamp
+            self._publish_desired(Header(stamp=Time(), frame_id=msg.header.frame_id))
 
     def _srv_teach(self, request, response):
         taught = self.core.teach()
         response.success, response.message = taught.success, taught.message
-        if taught.success:
-            self.get_logger().info(self.core.describe_desired())
+        if taught.success:  # the taught image is the latest measurement's
+            self._publish_desired(self.last_header)
         return response
 
     def _on_measurement(self, msg: JointState) -> None:
         st = msg.header.stamp
+        self.last_header = msg.header
         out = self.core.on_measurement(stamp_ns(st.sec, st.nanosec), measurement_from_msg(msg))
-        if out is None:
-            return
-        if out.lost:
-            self.get_logger().warn(f'target lost: {out.lost}', throttle_duration_sec=2.0)
-        for name, pub in self.pubs.items():
-            fs = out.values.get(name)
-            pub.publish(features_msg(name, msg.header, *((fs.s, fs.s_star) if fs else ())))
+        if out is not None:
+            if out.lost:
+                self.get_logger().warn(f'target lost: {out.lost}', throttle_duration_sec=2.0)
+            for name, pub in self.pubs.items():
+                fs = out.values.get(name)
+                pub.publish(features_msg(name, msg.header, None if fs is None else fs.s))
+        self.status.update(self.core.status(), msg.header)
 
 
 def main(args=None):

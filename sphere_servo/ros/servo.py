@@ -2,45 +2,58 @@
 ``servo``: features → camera twist, ``v_c = −λ L̂⁺ (s − s*)`` (paper eq. 17).
 
 Subscribes
-    ``features/<feature_set>``  sensor_msgs/JointState  s (position), s* (velocity)
+    ``features/<feature_set>``          sensor_msgs/JointState  s (``position``)
+    ``features/<feature_set>/desired``  sensor_msgs/JointState  s* (``position``);
+                                        transient-local, so the desired published before
+                                        the servo started reaches it
 Publishes
-    ``camera/cmd_vel``          geometry_msgs/Twist         (v, ω) in the camera optical frame
-    ``camera/cmd_vel_stamped``  geometry_msgs/TwistStamped  the same, header = the image's
-    ``servo/state``             diagnostic_msgs/DiagnosticStatus  message one of
-                                ``waiting | disabled | servoing | converged | target lost |
-                                stale``;
-                                values: error_norm, converged, target_lost, iteration, gain,
-                                saturated, stamp, image_age (s: the node clock at the
-                                twist's publication − the image stamp)
+    ``camera/cmd_vel``  geometry_msgs/TwistStamped  (v, ω) in the camera optical frame;
+                        header = the answered image's header; a zero stamp (and the last
+                        image's frame) when it answers no image: the watchdog's zero twists
+                        and the last word
+    ``~/state``         diagnostic_msgs/DiagnosticArray  one status per twist, same header:
+                        message one of ``waiting | disabled | no desired | servoing |
+                        converged | target lost | stale``; values: reason, error_norm,
+                        converged, target_lost, gain, saturated, image_age (s: the node
+                        clock at the twist's publication − the image stamp), iteration,
+                        stamp, desired_stamp (of the image the desired held came from)
+    ``/diagnostics``    diagnostic_msgs/DiagnosticArray  the same status, on change and at
+                        1 Hz (:mod:`sphere_servo.ros.diagnostics`)
 
 Services
-    ``~/enable``                std_srvs/SetBool  start/stop servoing (with ``start_enabled:
-                                false`` the servo sends zero twists until enabled: the
-                                launcher teaches the desired image meanwhile)
+    ``~/enable``        std_srvs/SetBool  start/stop servoing (with ``start_enabled: false``
+                        the servo sends zero twists until enabled: the launcher teaches the
+                        desired image meanwhile)
 
 What the servo decides (each image answered once, ``max_image_age``, the watchdog, the zero
-twists) is :class:`~sphere_servo.pipeline.servo.ServoCore`'s; on shutdown the last word is
-a zero twist. ``feature_set`` ∈ {s_n, s}: their interaction matrices depend on s only
-(eqs. 6 and 16).
+twists, no twist before a desired) is :class:`~sphere_servo.pipeline.servo.ServoCore`'s; on
+shutdown the last word is a zero twist. ``feature_set`` ∈ {s_n, s}: their interaction
+matrices depend on s only (eqs. 6 and 16).
 """
 from __future__ import annotations
 
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Twist, TwistStamped
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import TwistStamped
 import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from sphere_servo.core.measurement import MeasurementError
-from sphere_servo.pipeline.common import stamp_ns
+from sphere_servo.pipeline.common import stamp_ns, stamp_text
 from sphere_servo.pipeline.params import ServoParams
 from sphere_servo.pipeline.servo import Ignored, ServoCommand, ServoCore, Unanswered
 from sphere_servo.ros.conversions import twist_from_array
+from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.params import declare_all, run
-from sphere_servo.ros.vectors import features_from_msg
+from sphere_servo.ros.vectors import (desired_from_msg, DESIRED_QOS, desired_topic,
+                                      features_from_msg)
+from sphere_servo.sim.arm import CAMERA_FRAME
+from std_msgs.msg import Header
 from std_srvs.srv import SetBool
+
+HARDWARE_ID = 'camera'  # the eye-in-hand camera whose twist the servo commands
 
 
 class ServoNode(Node):
@@ -49,16 +62,20 @@ class ServoNode(Node):
     def __init__(self, **kwargs):
         super().__init__('servo', **kwargs)
         self.core = ServoCore(declare_all(self, ServoParams))
-        self.pub_twist = self.create_publisher(Twist, 'camera/cmd_vel', 100)
-        self.pub_stamped = self.create_publisher(TwistStamped, 'camera/cmd_vel_stamped', 100)
-        self.pub_state = self.create_publisher(DiagnosticStatus, 'servo/state', 100)
+        fset = self.core.feature_set
+        self.frame_id = CAMERA_FRAME  # of the last image answered
+        self.pub_twist = self.create_publisher(TwistStamped, 'camera/cmd_vel', 100)
+        self.status = StatusPublisher(self, HARDWARE_ID, self.core.on_tick(0.0).status())
         # every frame gets its answer (a 60 Hz camera loses none); which frames are usable
         # is the core's decision: see max_image_age
-        self.create_subscription(JointState, f'features/{self.core.feature_set}',
-                                 self._on_features, 10)
+        self.create_subscription(JointState, f'features/{fset}', self._on_features, 10)
+        sub = self.create_subscription(JointState, desired_topic(fset), self._on_desired,
+                                       DESIRED_QOS)
         self.create_service(SetBool, '~/enable', self._srv_enable)
         # wall (steady) clock: in lockstep, sim time freezes exactly when the pipeline dies
         self.create_timer(0.05, self._watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(f'servoing on {fset}; no twist before the desired features '
+                               f'arrive on {sub.topic_name}')
 
     def _srv_enable(self, request, response):
         self.core.enable(request.data)
@@ -67,16 +84,30 @@ class ServoNode(Node):
         self.get_logger().info(response.message)
         return response
 
-    def _on_features(self, msg: JointState) -> None:
-        s = s_star = None
+    def _on_desired(self, msg: JointState) -> None:
+        st = msg.header.stamp
         try:
-            fs, invalid = features_from_msg(msg, self.core.feature_set), ''
-            if fs is not None:
-                s, s_star = fs.s, fs.s_star
+            refused = self.core.set_desired(desired_from_msg(msg, self.core.feature_set),
+                                            stamp_ns(st.sec, st.nanosec))
+            reason = '' if refused is None else refused.reason
+        except MeasurementError as exc:
+            reason = str(exc)
+        if reason:
+            self.get_logger().error(f'desired features refused, the servo keeps the ones it '
+                                    f'had: {reason}', throttle_duration_sec=2.0)
+            return
+        self.get_logger().info(f'desired features of the image stamped '
+                               f'{stamp_text(self.core.desired_stamp_ns)}: '
+                               f's* = {np.round(self.core.s_star, 4).tolist()}')
+
+    def _on_features(self, msg: JointState) -> None:
+        s = None
+        try:
+            s, invalid = features_from_msg(msg, self.core.feature_set), ''
         except MeasurementError as exc:
             invalid = str(exc)
         st = msg.header.stamp
-        out = self.core.on_features(stamp_ns(st.sec, st.nanosec), s, s_star,
+        out = self.core.on_features(stamp_ns(st.sec, st.nanosec), s,
                                     self.get_clock().now().nanoseconds, time.monotonic(),
                                     invalid)
         if isinstance(out, Unanswered):
@@ -86,6 +117,7 @@ class ServoNode(Node):
                     f'(max_image_age {self.core.max_age_ns * 1e-9:g} s; {out.skipped} so '
                     'far)', throttle_duration_sec=2.0)
             return
+        self.frame_id = msg.header.frame_id or self.frame_id
         self._send(out, msg.header)
 
     def _watchdog(self) -> None:
@@ -93,26 +125,28 @@ class ServoNode(Node):
         if cmd is not None:
             self._send(cmd)
 
-    def _send(self, cmd: ServoCommand, header=None) -> None:
-        """Publish the twist (stamped too when it answers an image), then the state."""
+    def _unstamped(self) -> Header:
+        """Return the header of a twist that answers no image: zero stamp, the camera frame."""
+        return Header(stamp=Time(), frame_id=self.frame_id)
+
+    def _send(self, cmd: ServoCommand, header: Header | None = None) -> None:
+        """Publish the twist (with the answered image's header), then the state."""
         if cmd.fault:
             self.get_logger().error(f'no valid twist: {cmd.fault}', throttle_duration_sec=2.0)
-        tw = twist_from_array(cmd.twist)
-        self.pub_twist.publish(tw)
+        hdr = header if header is not None else self._unstamped()
+        self.pub_twist.publish(TwistStamped(header=hdr, twist=twist_from_array(cmd.twist)))
         age_ns = None
         if header is not None:
-            self.pub_stamped.publish(TwistStamped(header=header, twist=tw))
             age_ns = self.get_clock().now().nanoseconds - cmd.stamp_ns
         if cmd.changed:
             self.get_logger().info(f'state: {cmd.state.value}' + (
                 f' ({cmd.reason})' if cmd.reason else ''))
-        self.pub_state.publish(DiagnosticStatus(
-            level=bytes([cmd.level]), name='servo', message=cmd.state.value,
-            values=[KeyValue(key=k, value=v) for k, v in cmd.values(age_ns).items()]))
+        self.status.update(cmd.status(age_ns), hdr)
 
     def on_shutdown(self) -> None:
         """Last word: a zero twist."""
-        self.pub_twist.publish(twist_from_array(np.zeros(6)))
+        self.pub_twist.publish(TwistStamped(header=self._unstamped(),
+                                            twist=twist_from_array(np.zeros(6))))
 
 
 def main(args=None):

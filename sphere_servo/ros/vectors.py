@@ -6,18 +6,31 @@ their names. The layouts are :mod:`sphere_servo.pipeline.vectors`'s:
 
 - ``detector/measurement``: ``name`` the measurement's names, ``position`` its values;
   empty = the sphere was not detected.
-- ``features/<set>``: ``name`` the set's labels (FEATURE_NAMES), ``position`` s,
-  ``velocity`` s*, ``effort`` s − s*; empty = the target or a mark is lost.
+- ``features/<set>``: ``name`` the set's labels (FEATURE_NAMES), ``position`` s;
+  empty = the target or a mark is lost. ``velocity`` and ``effort`` are empty.
+- ``features/<set>/desired``: the same labels, ``position`` s*.
 
-Every message carries the header of the image it was derived from.
+Every message carries the header of the image it was derived from (the desired: of the
+image it was taught from).
 """
 from __future__ import annotations
 
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from sphere_servo.pipeline.vectors import (FEATURE_NAMES, features_from_vectors, Measurement,
-                                           SetFeatures)
+from sphere_servo.core.measurement import MeasurementError
+from sphere_servo.pipeline.vectors import FEATURE_NAMES, features_from_vectors, Measurement
 from sphere_servo.vision.detector import Detection
 from std_msgs.msg import Header
+
+# the desired features: the last one kept for late subscribers (``ros2 topic echo`` needs
+# ``--qos-durability transient_local`` to see it)
+DESIRED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def desired_topic(name: str) -> str:
+    """Return the (relative) topic of a set's desired features, ``features/<name>/desired``."""
+    return f'features/{name}/desired'
 
 
 def measurement_msg(det: Detection | Measurement | None, hdr: Header) -> JointState:
@@ -31,18 +44,24 @@ def measurement_from_msg(msg) -> Measurement:
     return Measurement.of(msg.name, msg.position)
 
 
-def features_msg(name: str, hdr: Header, s=None, s_star=None) -> JointState:
-    """Build ``features/<name>``: s, s*, s − s*; empty when ``s`` is None (target lost)."""
+def features_msg(name: str, hdr: Header, s=None) -> JointState:
+    """Build ``features/<name>`` (or its desired): s; empty when ``s`` is None (target lost)."""
     msg = JointState(header=hdr)
     if s is None:
         return msg
     msg.name = list(FEATURE_NAMES[name])
     msg.position = [float(v) for v in s]
-    msg.velocity = [float(v) for v in s_star]
-    msg.effort = [float(a - b) for a, b in zip(s, s_star)]
     return msg
 
 
-def features_from_msg(msg: JointState, name: str) -> SetFeatures | None:
-    """Read s and s* of a features message (None: target lost); MeasurementError if malformed."""
-    return features_from_vectors(name, msg.name, msg.position, msg.velocity)
+def features_from_msg(msg, name: str):
+    """Read s of a features message, (n,) or None (target lost); MeasurementError if malformed."""
+    return features_from_vectors(name, msg.name, msg.position)
+
+
+def desired_from_msg(msg, name: str):
+    """Read s* (n,) of a ``features/<name>/desired`` message; MeasurementError if malformed."""
+    s_star = features_from_vectors(name, msg.name, msg.position)
+    if s_star is None:
+        raise MeasurementError(f'a desired {name} message without values')
+    return s_star
