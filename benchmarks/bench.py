@@ -1,6 +1,8 @@
-"""``make bench``: every speed benchmark of the project in one run, as one table with the
-baseline measured beside each figure and their ratio. Benchmarks print; tests never assert
-on wall-clock time.
+"""
+``make bench``: every speed benchmark of the project in one run, as one table.
+
+The table has the baseline measured beside each figure and their ratio. Benchmarks print;
+tests never assert on wall-clock time.
 
 Each area provides ``benchmarks.bench_<area>.run(quick) -> list[dict]`` with rows
 ``{name, value, unit, baseline, baseline_name, ratio, target}``.
@@ -12,7 +14,7 @@ import importlib
 import sys
 import traceback
 
-AREAS = ('core', 'vision', 'arm', 'bag', 'loop', 'paper')
+AREAS = ('core', 'vision', 'arm', 'bag', 'loop', 'transport', 'paper')
 
 
 def _fmt(x) -> str:

@@ -1,4 +1,5 @@
-"""Benchmark of the arm simulator (issue 4).
+"""
+Benchmark of the arm simulator (issue 4).
 
 Rows (``run()`` returns them as dicts with name, value, unit, baseline, baseline_name,
 ratio = value / baseline, target):
@@ -39,8 +40,11 @@ def _row(name, value, unit, baseline, baseline_name, target) -> dict:
 
 @contextlib.contextmanager
 def _sim(mode: str):
-    """An in-process ``ArmSim`` in ``mode`` and a sink node, on their own context and
-    executor; yields ``(sim, sink, executor)``."""
+    """
+    Run an in-process ``ArmSim`` in ``mode`` and a sink node; yield ``(sim, sink, executor)``.
+
+    Both are on their own context and executor.
+    """
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -76,9 +80,9 @@ def bench_lockstep_cycle(n: int) -> dict:
             t0 = time.perf_counter()
             sim._on_cmd(cmd)
             cycle.append(time.perf_counter() - t0)
-            cMo = sim.arm.cMo()
+            cMo = sim.core.arm.cMo()
             t0 = time.perf_counter()
-            sim.renderer.render(cMo)
+            sim.core.renderer.render(cMo)
             render.append(time.perf_counter() - t0)
             ex.spin_once(timeout_sec=0.0)  # deliver (outside the timed part)
     return _row('arm_sim lockstep cycle (integrate+render+publish 640x480)',
@@ -111,7 +115,7 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--quick', action='store_true', help='short runs')
     rows = run(quick=ap.parse_args(argv).quick)
     for r in rows:

@@ -1,7 +1,10 @@
-"""Benchmark of the pure core: one control step from a measurement (conic + two mark
-points in normalized coordinates) to the twist — ``s_n``, ``L_sn`` and ``v_c``.
-Target (issue 2): < 100 µs median per call. Baseline beside it: a bare 6×6 ``np.linalg.solve``
-(the floor of any law that inverts L)."""
+"""
+Benchmark of the pure core: one control step from a measurement to the twist.
+
+From the measurement (conic + two mark points in normalized coordinates) to ``s_n``,
+``L_sn`` and ``v_c``. Target (issue 2): < 100 µs median per call. Baseline beside it: a
+bare 6×6 ``np.linalg.solve`` (the floor of any law that inverts L).
+"""
 from __future__ import annotations
 
 import time
@@ -11,8 +14,8 @@ import numpy as np
 from sphere_servo.core.control import Controller
 from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.measurement import Observation, observe, sphere_from_conic, unit_ray
-from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
 from sphere_servo.core.targets import special_sphere
+from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
 
 
 def _median_us(fn, n: int) -> float:

@@ -1,12 +1,15 @@
-"""Benchmark of the ROS pipeline (issue 5): image → twist latency across processes, keeping up
-with a 60 Hz camera, and resident memory per node.
+"""
+Benchmark of the ROS pipeline (issue 5).
+
+Image → twist latency across processes, keeping up with a 60 Hz camera, and resident memory
+per node.
 
 A feeder *process* publishes rendered 640×480 rgb8 images (and camera_info) stamped with the
 wall clock at publish time, at a set rate; ``detector``, ``features`` and ``servo`` run as
 separate processes (``python -m``), and this process listens. Figures:
 
 - pipeline latency: image stamp → twist publication (the servo's ``image_age`` in
-  ``servo/state``, on its wall clock right after it published the twist: three processes,
+  ``/servo/state``, on its wall clock right after it published the twist: three processes,
   three DDS hops), median — the issue's figure; and, stricter, twist *arrival* in this
   (fourth) process − image stamp (four hops);
 - baseline, measured beside it: the bare two-process Image latency, image arrival in this
@@ -18,15 +21,15 @@ separate processes (``python -m``), and this process listens. Figures:
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-FEEDER = r'''
+FEEDER = r"""
 import signal, sys, time, rclpy
 from rclpy.node import Node
 from std_msgs.msg import Header
@@ -58,7 +61,7 @@ while state['run']:
 print(f'published {n}', flush=True)
 node.destroy_node()
 rclpy.try_shutdown()
-'''
+"""
 
 
 def _rss_mb(pid: int) -> float:
@@ -73,7 +76,7 @@ def _rss_mb(pid: int) -> float:
 
 def _run(rate: float, seconds: float) -> dict:
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticStatus
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TwistStamped
     from rclpy.node import Node
     from sensor_msgs.msg import Image
@@ -82,7 +85,7 @@ def _run(rate: float, seconds: float) -> dict:
     env = dict(os.environ, ROS_DOMAIN_ID=str(1 + (os.getpid() * 13) % 100),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
     extra = {'servo': ['-p', 'start_enabled:=false']}
-    procs = {name: subprocess.Popen([sys.executable, '-m', f'sphere_servo.nodes.{name}',
+    procs = {name: subprocess.Popen([sys.executable, '-m', f'sphere_servo.ros.{name}',
                                      '--ros-args', *extra.get(name, [])],
                                     env=env, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)
@@ -106,15 +109,18 @@ def _run(rate: float, seconds: float) -> dict:
                              lambda m: img_lat.append(now() - t_of(m.header)), 10)
 
     def on_tw(m):
+        if t_of(m.header) == 0.0:  # the watchdog's: it answers no image
+            return
         tw_stamps.append(t_of(m.header))
         tw_lat.append(now() - t_of(m.header))
-    node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', on_tw, 100)
+    node.create_subscription(TwistStamped, 'camera/cmd_vel', on_tw, 100)
 
     def on_state(m):
-        age = {kv.key: kv.value for kv in m.values}.get('image_age')
-        if m.message == 'servoing' and age is not None:
+        st = m.status[0]
+        age = {kv.key: kv.value for kv in st.values}.get('image_age')
+        if st.message == 'servoing' and age is not None:
             pub_lat.append(float(age))
-    node.create_subscription(DiagnosticStatus, 'servo/state', on_state, 100)
+    node.create_subscription(DiagnosticArray, 'servo/state', on_state, 100)
     teach = node.create_client(Trigger, '/features/teach')
     enable = node.create_client(SetBool, '/servo/enable')
     rss = {}

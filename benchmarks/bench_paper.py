@@ -1,7 +1,10 @@
-"""Benchmark of the Monte Carlo study (issue 7): time per study run (exact observation and
-rendered images + detector), the projected wall time of ``make study`` at N = 500 on 2
-workers (target < 30 min), and — when it can be installed — machinevision-toolbox-python's
-``IBVS`` class stepping a comparable simulation, time per iteration, beside our loop's.
+"""
+Benchmark of the Monte Carlo study (issue 7) and of the headless loop beside a peer's IBVS.
+
+Time per study run (exact observation and rendered images + detector), the projected wall
+time of ``make study`` at N = 500 on 2 workers (target < 30 min), and — when it can be
+installed — machinevision-toolbox-python's ``IBVS`` class stepping a comparable simulation,
+time per iteration, beside our loop's.
 
 The peer lives in its own virtual environment (``.venv-mvtb``, created here if missing:
 it pulls a full OpenCV that clashes with the headless one) and runs as a subprocess. If it
@@ -10,16 +13,16 @@ cannot be installed (no network, build failure), its row says so and the rest st
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 MVTB_VENV = ROOT / '.venv-mvtb'
-PEER = r'''
+PEER = r"""
 import json, time, numpy as np
 from spatialmath import SE3
 from machinevisiontoolbox import CentralCamera
@@ -35,7 +38,7 @@ n = 200
 t0 = time.perf_counter()
 ibvs.run(n)
 print(json.dumps({"us_per_step": (time.perf_counter() - t0) / n * 1e6}))
-'''
+"""
 
 
 def _median_s(fn, n: int) -> float:
@@ -68,10 +71,11 @@ def _peer_us(log=sys.stdout) -> tuple[float | None, str]:
 
 
 def run(quick: bool = False) -> list[dict]:
-    from sphere_servo.sim.loop import run_loop
-    from sphere_servo.experiments.scenarios import CMO_DESIRED
     from sphere_servo.core.targets import cc_target
-    from sphere_servo.experiments import study
+    from sphere_servo.experiments import study_cells as study
+    from sphere_servo.experiments.ibvs import IbvsFeatures
+    from sphere_servo.experiments.scenarios import CMO_DESIRED
+    from sphere_servo.sim.loop import run_loop
     k = 4 if quick else 12
     poses = study.start_poses(k, seed=1)
     cells = {c: [(c, fs, i, p.homogeneous.tolist()) for i, p in enumerate(poses)
@@ -91,7 +95,7 @@ def run(quick: bool = False) -> list[dict]:
     projected_min = cpu / 2 / 60
     # our loop's time per iteration (s_n, exact observation) vs the peer's IBVS step
     tgt = cc_target()
-    t_loop = _median_s(lambda: run_loop(tgt, poses[0], CMO_DESIRED, 'ibvs', max_iter=100,
+    t_loop = _median_s(lambda: run_loop(tgt, poses[0], CMO_DESIRED, IbvsFeatures, max_iter=100,
                                         tol=1e-12), 3) / 100 * 1e6
     peer, why = _peer_us()
     rows = [

@@ -1,4 +1,5 @@
-"""Vision benchmark: detector and renderer speed at 640×480 (prints; never asserted by tests).
+"""
+Vision benchmark: detector and renderer speed at 640×480 (prints; never asserted by tests).
 
 - detector median ms/frame on ray-cast frames of the special sphere at 0.25–1.0 m, beside a
   bare ``cvtColor + threshold(Otsu) + findContours + fitEllipse`` on the same frames
@@ -24,17 +25,20 @@ from sphere_servo.vision.renderer import Renderer
 
 
 def _frames(n: int, seed: int = 0):
-    """Ray-cast frames of the special sphere at the detector tests' random poses (0.25–1.0 m,
-    sphere fully in view, any orientation)."""
+    """
+    Render frames of the special sphere at the detector tests' random poses.
+
+    0.25–1.0 m, the sphere fully in view, any orientation.
+    """
     cam = CameraIntrinsics()
     target = special_sphere()
     ren = Renderer(cam, target)
-    return cam, target, [ren.render(M) for M in random_poses(target, cam, n, seed,
-                                                              max_incidence=None)]
+    poses = random_poses(target, cam, n, seed, max_incidence=None)
+    return cam, target, [ren.render(M) for M in poses]
 
 
 def baseline_ellipse(img: np.ndarray):
-    """The bare OpenCV pipeline the detector is compared with."""
+    """Run the bare OpenCV pipeline the detector is compared with."""
     grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
     _, mask = cv2.threshold(grey, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)

@@ -1,6 +1,8 @@
-"""Shared pytest fixtures: an isolated ROS 2 domain per test, a colcon-built install space,
-and a launcher for the installed executables (launch_testing style, without launch_testing,
-which is not on PyPI).
+"""
+Shared pytest fixtures for the tests that run ROS 2.
+
+An isolated ROS 2 domain per test, a colcon-built install space, and a launcher for the
+installed executables (launch_testing style, without launch_testing, which is not on PyPI).
 
 - ``ros_env``       environment for processes of one test: its own ``ROS_DOMAIN_ID``,
                     localhost discovery, and the install space sourced.
@@ -15,15 +17,15 @@ from __future__ import annotations
 import fcntl
 import itertools
 import os
+from pathlib import Path
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import pytest
 
-from sphere_servo.bringup.launcher import interrupt
+from sphere_servo.bringup.processes import interrupt
 
 REPO = Path(__file__).resolve().parents[1]
 _domain_counter = itertools.count()
@@ -33,8 +35,11 @@ ROS_FIXTURES = {'install_space', 'ros_env', 'launch', 'test_node'}
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark every test that needs the colcon install or DDS as ``ros``, so that
-    ``pytest -m "not ros"`` is a fast inner loop."""
+    """
+    Mark every test that needs the colcon install or DDS as ``ros``.
+
+    ``pytest -m "not ros"`` then leaves them out: a fast inner loop.
+    """
     for item in items:
         if ROS_FIXTURES & set(getattr(item, 'fixturenames', ())):
             item.add_marker(pytest.mark.ros)
@@ -44,9 +49,13 @@ LOCK_DIR = Path(tempfile.gettempdir()) / 'sphere_servo_ros_domains'
 
 
 def _acquire_domain_id():
-    """A ROS_DOMAIN_ID (1..100, within the default port mapping on Linux) that no other test
-    on this machine holds: an exclusive lock file per domain, held until released, so
-    concurrent pytest runs never hear each other. Returns (domain_id, lock file object)."""
+    """
+    Take a ROS_DOMAIN_ID that no other test on this machine holds.
+
+    1..100, within the default port mapping on Linux. An exclusive lock file per domain,
+    held until released, so concurrent pytest runs never hear each other. Returns
+    (domain_id, lock file object).
+    """
     LOCK_DIR.mkdir(exist_ok=True)
     start = (os.getpid() * 7 + next(_domain_counter)) % 100
     for k in range(100):
@@ -62,8 +71,11 @@ def _acquire_domain_id():
 
 @pytest.fixture(scope='session')
 def install_space(tmp_path_factory) -> dict:
-    """Build the package with colcon into a temporary install base and return the
-    environment of ``source install/setup.bash``."""
+    """
+    Build the package with colcon into a temporary install base.
+
+    Returns the environment of ``source install/setup.bash``.
+    """
     base = tmp_path_factory.mktemp('colcon')
     venv_bin = Path(sys.executable).parent
     colcon = venv_bin / 'colcon'
@@ -98,8 +110,7 @@ def executable_path(env: dict, name: str) -> str:
 
 @pytest.fixture
 def ros_env(install_space):
-    """Environment for this test's processes: a domain no other test holds, localhost
-    discovery."""
+    """Environment for this test's processes: a domain no other test holds, localhost discovery."""
     domain, lock = _acquire_domain_id()
     env = dict(install_space)
     env['ROS_DOMAIN_ID'] = str(domain)
@@ -126,7 +137,11 @@ class Proc:
 
 @pytest.fixture
 def launch(ros_env, tmp_path):
-    """``launch(name, *args, env_extra=None)`` starts an installed executable."""
+    """
+    Start installed executables, each as a process stopped at the end of the test.
+
+    ``launch(name, *args, env_extra=None)`` starts one and returns its :class:`Proc`.
+    """
     procs: list[Proc] = []
 
     def _launch(name: str, *args: str, env_extra: dict | None = None) -> Proc:
@@ -157,8 +172,11 @@ def wait_for(predicate, timeout: float, interval: float = 0.05, what: str = 'con
 
 @pytest.fixture
 def test_node(ros_env):
-    """An rclpy node in this test process, on the test's domain, with its own context and
-    executor: ``node, spin = test_node``; ``spin(seconds)`` processes callbacks."""
+    """
+    An rclpy node in this test process, on the test's domain, with its own context and executor.
+
+    ``node, spin = test_node``; ``spin(seconds)`` processes callbacks.
+    """
     rclpy = pytest.importorskip('rclpy')
     from rclpy.executors import SingleThreadedExecutor
 

@@ -8,13 +8,17 @@ from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import MeasurementError, observe
 from sphere_servo.core.targets import Target
 
-from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START, camera_at  # noqa: F401
+from sphere_servo.experiments.scenarios import camera_at, CMO_DESIRED, CMO_FAR_START  # noqa: F401
 
 
 def random_visible_poses(target: Target, n: int, seed: int = 0,
                          camera: CameraIntrinsics | None = None) -> list[pin.SE3]:
-    """``n`` random poses ``cMo`` at 0.25–1.0 m from which the sphere is entirely in front
-    of the camera and both marks are visible (and in the image, if ``camera`` is given)."""
+    """
+    Draw ``n`` random poses ``cMo`` at 0.25–1.0 m that see the whole target.
+
+    From each, the sphere is entirely in front of the camera and both marks are visible
+    (and in the image, if ``camera`` is given).
+    """
     rng = np.random.default_rng(seed)
     camera = camera or CameraIntrinsics()
     poses = []

@@ -1,12 +1,15 @@
-"""Pure tests of the UR5 + eye-in-hand camera model (no ROS): Jacobian against finite
-differences of Pinocchio's forward kinematics, DLS tracking, uniform velocity scaling,
-position limits, watchdog, IK."""
+"""
+Pure tests of the UR5 + eye-in-hand camera model (no ROS).
+
+Jacobian against finite differences of Pinocchio's forward kinematics, DLS tracking,
+uniform velocity scaling, position limits, watchdog, IK.
+"""
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from sphere_servo.core.geometry import integrate_camera
-from sphere_servo.sim.arm import ArmModel, Status, find_ur5_urdf, pose_from_xyz_rpy
+from sphere_servo.sim.arm import ArmModel, find_ur5_urdf, pose_from_xyz_rpy, Status
 
 Q_NOMINAL = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
 HAND_EYE = pose_from_xyz_rpy([0.02, -0.04, 0.03], [0.05, -0.03, 0.4])
@@ -87,13 +90,16 @@ def test_twist_beyond_limits_is_scaled_as_a_whole(arm):
     assert np.allclose(realised, info.scale * v_c, atol=1e-6)
 
 
-def test_non_finite_twist_is_refused_and_previous_command_kept(arm):
-    arm.reset()
-    arm.command([0, 0, 0.1, 0, 0, 0])
+def test_non_finite_twist_is_refused_and_stops_the_arm(arm):
     for bad in ([np.nan, 0, 0, 0, 0, 0], [0, 0, np.inf, 0, 0, 0], [1, 2, 3]):
+        arm.reset()
+        arm.command([0, 0, 0.1, 0, 0, 0])
+        assert np.any(arm.step(1 / 30).qdot)
         with pytest.raises(ValueError):
             arm.command(bad)
-    assert np.allclose(arm._cmd, [0, 0, 0.1, 0, 0, 0])
+        # the refused twist drops the previous one: at rest from the next step (issue 14)
+        assert np.allclose(arm._cmd, 0.0)
+        assert not np.any(arm.step(1 / 30).qdot)
 
 
 def _wrist3_twist(a):

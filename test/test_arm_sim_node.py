@@ -1,4 +1,5 @@
-"""The installed ``arm_sim`` executable as a process, driven from a test rclpy node.
+"""
+The installed ``arm_sim`` executable as a process, driven from a test rclpy node.
 
 Kinematic checks run in lockstep (one period per command), so they do not depend on the
 machine's speed; nothing here asserts on wall-clock time (timeouts only bound the waits).
@@ -6,22 +7,21 @@ machine's speed; nothing here asserts on wall-clock time (timeouts only bound th
 import hashlib
 import time
 
+from conftest import REPO, wait_for
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from conftest import REPO, wait_for
-
 pytest.importorskip('rclpy')
-from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
-from geometry_msgs.msg import PoseStamped, Twist  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402, I100
+from geometry_msgs.msg import PoseStamped, TwistStamped  # noqa: E402
 from sensor_msgs.msg import Image, JointState  # noqa: E402
+from sphere_servo.ros.conversions import se3_from_pose, twist_from_array  # noqa: E402
+from sphere_servo.sim.arm import ArmModel, CAMERA_FRAME, pose_from_xyz_rpy  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from sphere_servo.ros.conversions import se3_from_pose, twist_from_array  # noqa: E402
-from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy  # noqa: E402
-
-CONFIG = str(REPO / 'config' / 'arm_sim.yaml')
+CONFIG = str(REPO / 'config' / 'params' / 'arm_sim.yaml')
 DT = 1.0 / 30.0
 WAIT = 20.0  # generous bound on any single wait (a loaded CI machine); never asserted on
 
@@ -34,9 +34,14 @@ class Probe:
         self.images, self.poses, self.status, self.joints = [], [], [], []
         node.create_subscription(Image, 'camera/image_raw', self.images.append, 50)
         node.create_subscription(PoseStamped, 'ground_truth/camera_pose', self.poses.append, 50)
-        node.create_subscription(DiagnosticStatus, 'arm_sim/status', self.status.append, 50)
+        # arm_sim's ~/state: one status a frame, with the image's header
+        node.create_subscription(DiagnosticArray, 'arm_sim/state',
+                                 lambda m: self.status.append(m.status[0]), 50)
         node.create_subscription(JointState, 'joint_states', self.joints.append, 50)
-        self.pub = node.create_publisher(Twist, 'camera/cmd_vel', 10)
+        self.pub = node.create_publisher(TwistStamped, 'camera/cmd_vel', 10)
+
+    def twist(self, v, frame_id: str = CAMERA_FRAME) -> TwistStamped:
+        return TwistStamped(header=Header(frame_id=frame_id), twist=twist_from_array(v))
 
     def wait_first_image(self):
         self.spin(WAIT, until=lambda: self.images and self.poses and self.status)
@@ -44,11 +49,11 @@ class Probe:
         # wait for the subscription of the simulator to match ours
         wait_for(lambda: self.pub.get_subscription_count() > 0, WAIT, what='cmd_vel match')
 
-    def step(self, v):
+    def step(self, v, frame_id: str = CAMERA_FRAME):
         """Send one twist and wait for the image (and pose, status) it produces."""
         n = len(self.images)
         stamp = self.images[-1].header.stamp
-        self.pub.publish(twist_from_array(v))
+        self.pub.publish(self.twist(v, frame_id))
 
         def done():
             if not (len(self.images) > n and self.images[-1].header.stamp != stamp
@@ -114,7 +119,7 @@ def test_translation_and_rotation_in_lockstep(launch, probe):
     assert res.success
     assert probe.spin(WAIT, until=lambda: len(probe.images) > n and
                       probe.poses[-1].header.stamp == probe.images[-1].header.stamp)
-    oMc_des = pose_from_xyz_rpy([0, 0, 0.45], [0, 0, 0]).inverse()  # config/arm_sim.yaml
+    oMc_des = pose_from_xyz_rpy([0, 0, 0.45], [0, 0, 0]).inverse()  # config/params/arm_sim.yaml
     assert np.allclose(probe.oMc().homogeneous, oMc_des.homogeneous, atol=1e-5)
     # the reply names the stamp of the first image at the new pose
     assert float(res.message.rsplit(' ', 1)[-1]) == pytest.approx(
@@ -153,7 +158,7 @@ def test_command_timeout_brings_the_arm_to_rest(launch, probe):
     # the reader side completes discovery), then stop commanding
     deadline = time.monotonic() + WAIT
     while not moving() and time.monotonic() < deadline:
-        probe.pub.publish(twist_from_array([0.0, 0.0, 0.05, 0.0, 0.0, 0.1]))
+        probe.pub.publish(probe.twist([0.0, 0.0, 0.05, 0.0, 0.0, 0.1]))
         probe.spin(0.03)
     assert moving(), 'the arm never moved'
     assert probe.spin(WAIT, until=lambda: probe.status[-1].message == 'timeout')
@@ -186,7 +191,7 @@ def _lockstep_run(launch, probe):
     stamps = [_stamp(im) for im in new]
     assert len(new) == len(twists), stamps
     assert np.allclose(np.diff(stamps), DT, atol=1e-6)
-    assert 'non-finite camera twist' in proc.log()
+    assert 'refused' in proc.log() and '[nan, 0.0, 0.0, 0.0, 0.0, 0.0] is not finite' in proc.log()
     assert proc.stop() == 0
     return [hashlib.sha256(bytes(im.data)).hexdigest() for im in new]
 
@@ -211,3 +216,34 @@ def test_invalid_parameter_is_refused(launch, param, needle):
     rc = proc.popen.wait(WAIT)
     assert rc != 0
     assert 'refused to start' in proc.log() and needle in proc.log(), proc.log()
+
+
+def test_a_twist_in_another_frame_is_refused_and_the_arm_holds_still(launch, probe):
+    """
+    Refuse a TwistStamped whose frame_id is not camera_optical_frame (lockstep).
+
+    It is not executed: the joint velocities are zero and the pose does not change; the
+    loop goes on (one new image for it), the state says why and the log says so.
+    """
+    proc = lockstep(launch)
+    probe.wait_first_image()
+    v = [0.02, -0.01, 0.03, 0.05, 0.0, 0.1]
+    probe.step(v)
+    assert np.any(np.abs(probe.joints[-1].velocity) > 1e-6)  # a valid one moves the arm
+    M0, q0, t0 = probe.oMc(), list(probe.joints[-1].position), _stamp(probe.images[-1])
+    for frame_id in ('tool0', ''):
+        probe.step(v, frame_id)
+        assert _stamp(probe.images[-1]) > t0  # the period passed: the loop goes on
+        assert np.all(np.array(probe.joints[-1].velocity) == 0.0)
+        assert list(probe.joints[-1].position) == q0
+        np.testing.assert_array_equal(probe.oMc().homogeneous, M0.homogeneous)
+        st = probe.status[-1]
+        values = {kv.key: kv.value for kv in st.values}
+        assert st.level == DiagnosticStatus.WARN and st.message == 'ok'
+        assert f'a camera twist in frame {frame_id!r}' in values['command_error']
+        t0 = _stamp(probe.images[-1])
+    assert "refusing a camera twist in frame 'tool0'" in proc.log()
+    probe.step(v)  # and a valid one is executed again
+    assert np.any(np.abs(probe.joints[-1].velocity) > 1e-6)
+    assert 'command_error' not in {kv.key for kv in probe.status[-1].values}
+    assert proc.stop() == 0

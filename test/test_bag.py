@@ -1,30 +1,32 @@
-"""rosbag2 recording and replay: the installed ``record`` / ``replay`` executables against
-real DDS traffic from the test's own node, and real rosbag2 files read back with rosbags."""
+"""
+rosbag2 recording and replay.
+
+The installed ``record`` / ``replay`` executables against real DDS traffic from the test's
+own node, and real rosbag2 files read back with rosbags.
+"""
 from __future__ import annotations
 
 import array
 import os
+from pathlib import Path
 import signal
 import statistics
 import subprocess
 import time
-from pathlib import Path
-
-import numpy as np
-import pytest
-import yaml
 
 from conftest import executable_path, wait_for
+import numpy as np
+import pytest
 
 rclpy = pytest.importorskip('rclpy')
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from rosbags.typesys import get_typestore, Stores  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
-
 from sphere_servo.bag import bagio  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+import yaml  # noqa: E402
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 W, H = 640, 480
@@ -32,7 +34,7 @@ TOPICS = ['/camera/image_raw', '/camera/camera_info', '/servo/status']
 
 
 def frame_bytes(i: int) -> bytes:
-    """A 640×480 rgb8 frame that differs per index (and per pixel)."""
+    """Make a 640×480 rgb8 frame that differs per index (and per pixel)."""
     row = (np.arange(W * 3, dtype=np.uint32) * 7 + i * 13) % 251
     img = (row[None, :] + np.arange(H, dtype=np.uint32)[:, None] * (i + 1)) % 256
     return img.astype(np.uint8).tobytes()
@@ -168,9 +170,13 @@ def test_interrupted_recording_is_readable(launch, test_node, tmp_path, sig, sto
 
 
 def test_interrupt_first_drains_what_arrived(launch, test_node, tmp_path):
-    """A recorder that is behind when Ctrl-C comes (here: stopped with SIGSTOP while a burst
-    is published, then woken with SIGINT pending) takes what its subscriptions already hold
-    before it closes the bag: the whole burst is in it."""
+    """
+    A recorder that is behind when Ctrl-C comes drains its subscriptions before closing.
+
+    Here it is stopped with SIGSTOP while a burst is published, then woken with SIGINT
+    pending: it takes what its subscriptions already hold before it closes the bag, so the
+    whole burst is in it.
+    """
     node, spin = test_node
     out = tmp_path / 'bag'
     rec = launch('record', '-o', str(out), '--topics', '/burst')
@@ -195,9 +201,13 @@ def test_interrupt_first_drains_what_arrived(launch, test_node, tmp_path):
 
 
 def test_ready_service_names_what_is_not_recorded_yet(launch, test_node, tmp_path):
-    """``/recorder/ready`` (the launcher waits for it before a run): not ready while a topic
-    has no publisher, or while a publisher is not matched (a best-effort one that appeared
-    after the recorder subscribed reliably); ready once every topic is matched."""
+    """
+    ``/recorder/ready`` (the launcher waits for it before a run) says what is missing.
+
+    Not ready while a topic has no publisher, or while a publisher is not matched (a
+    best-effort one that appeared after the recorder subscribed reliably); ready once every
+    topic is matched.
+    """
     from std_srvs.srv import Trigger
     node, spin = test_node
     rec = launch('record', '-o', str(tmp_path / 'bag'), '--topics', *TOPICS)
@@ -227,8 +237,47 @@ def test_ready_service_names_what_is_not_recorded_yet(launch, test_node, tmp_pat
     assert late and rec.stop() == 0, rec.log()
 
 
+def test_idle_service_says_when_nothing_new_came(launch, test_node, tmp_path):
+    """
+    ``/recorder/idle`` succeeds once nothing new has arrived for ``--idle-quiet`` s.
+
+    A supervisor stopping a run waits for it before interrupting the recorder, which then
+    stops at once. A byte-identical repeat of a topic's last message is not new (an idle
+    lockstep arm_sim re-publishes).
+    """
+    from std_srvs.srv import Trigger
+    node, spin = test_node
+    rec = launch('record', '-o', str(tmp_path / 'bag'), '--topics', '/idle_test',
+                 '--idle-quiet', '1.0')
+    pub = node.create_publisher(String, '/idle_test', QoSProfile(depth=10))
+    cli = node.create_client(Trigger, '/recorder/idle')
+    assert spin(20.0, until=lambda: cli.service_is_ready() and
+                pub.get_subscription_count() > 0), rec.log()
+
+    def ask():
+        fut = cli.call_async(Trigger.Request())
+        assert spin(10.0, until=fut.done), rec.log()
+        return fut.result()
+
+    for i in range(30):  # 1.5 s of news
+        pub.publish(String(data=f'n{i}'))
+        spin(0.05)
+    busy = ask()
+    assert not busy.success and busy.message.startswith('nothing new for 0.'), busy.message
+    spin(1.3)
+    assert ask().success
+    pub.publish(String(data='n29'))  # a repeat of the last one
+    spin(0.3)
+    assert ask().success
+    pub.publish(String(data='news'))
+    spin(0.3)
+    late = ask()
+    assert not late.success, late.message
+    assert rec.stop() == 0, rec.log()
+
+
 def write_timing_bag(path: Path, storage: StoragePlugin) -> list[int]:
-    """A bag with irregular gaps (20–70 ms) on /chatter; returns its timestamps."""
+    """Write a bag with irregular gaps (20–70 ms) on /chatter; return its timestamps."""
     t, stamps = 1_700_000_000_000_000_000, []
     with Writer(path, version=9, storage_plugin=storage) as w:
         conn = w.add_connection('/chatter', 'std_msgs/msg/String', typestore=TS)
@@ -358,8 +407,11 @@ def test_bagio_errors_without_ros(tmp_path):
 
 
 def test_older_bag_format_and_its_qos(tmp_path):
-    """A version-8 bag (QoS stored as a YAML string, as Humble/Iron's ros2 bag writes it) is
-    read, and replay offers the recorded publisher's QoS."""
+    """
+    A version-8 bag is read, and replay offers the recorded publisher's QoS.
+
+    Version 8 stores the QoS as a YAML string, as Humble/Iron's ros2 bag writes it.
+    """
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability)
 

@@ -1,20 +1,23 @@
-"""Bad input to the core: every case gives a defined result or a clear ValueError, never a
-NaN silently propagated into a twist (issue 2)."""
+"""
+Bad input to the core (issue 2).
+
+Every case gives a defined result or a clear ValueError, never a NaN silently propagated
+into a twist.
+"""
 from __future__ import annotations
 
+from core_poses import camera_at, CMO_DESIRED
 import numpy as np
 import pinocchio as pin
 import pytest
-
-from core_poses import CMO_DESIRED, camera_at
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.control import ControlError, Controller
 from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import (
-    MeasurementError, Observation, SphereMeasurement, depth_ratio, mark_visible, observe,
-    sphere_from_conic, unit_ray)
-from sphere_servo.core.targets import Target, cc_target, special_sphere
+    depth_ratio, mark_visible, MeasurementError, Observation, observe, sphere_from_conic,
+    SphereMeasurement, unit_ray)
+from sphere_servo.core.targets import cc_target, special_sphere, Target
 
 
 def test_marks_on_the_far_side_are_reported_hidden():
@@ -108,8 +111,8 @@ def test_singular_configuration_is_a_control_error_not_nan():
         ctrl.compute(observe(pin.SE3(np.eye(3), np.array([0.01, 0.0, 0.5])), target))
 
 
-@pytest.mark.parametrize('kw', [dict(px=np.nan), dict(px=-1.0), dict(width=0),
-                                dict(dist=(0.0, 0.0))])
+@pytest.mark.parametrize('kw', [{'px': np.nan}, {'px': -1.0}, {'width': 0},
+                                {'dist': (0.0, 0.0)}])
 def test_bad_intrinsics_are_refused(kw):
     with pytest.raises(ValueError):
         CameraIntrinsics(**kw)

@@ -1,16 +1,18 @@
-"""Interaction matrices against central finite differences, and measurements against
-ground truth (issue 2; DESIGN.md §2–§3)."""
+"""
+Interaction matrices against central finite differences, measurements against ground truth.
+
+Issue 2; DESIGN.md §2–§3.
+"""
 from __future__ import annotations
 
+from core_poses import CMO_DESIRED, moved, random_visible_poses
 import numpy as np
 import pinocchio as pin
 import pytest
-
-from core_poses import CMO_DESIRED, moved, random_visible_poses
 from sphere_servo.core.features import FEATURE_SETS, make_feature_set
-from sphere_servo.core.geometry import L_omega, exp3, log3
+from sphere_servo.core.geometry import exp3, L_omega, log3
 from sphere_servo.core.measurement import (
-    cRo_measured, conic_from_ellipse, model_cRo_offset, observe, sphere_from_conic,
+    conic_from_ellipse, cRo_measured, model_cRo_offset, observe, sphere_from_conic,
     sphere_from_moments, unit_ray)
 from sphere_servo.core.targets import cc_target, special_sphere
 
@@ -20,8 +22,12 @@ H = 1e-5
 
 
 def fd_interaction(fs, target, cMo) -> np.ndarray:
-    """Central finite differences (4th-order stencil: marks near the limb make the depth's
-    square root strongly curved) of the feature map under each unit camera twist."""
+    """
+    Differentiate the feature map numerically under each unit camera twist.
+
+    Central finite differences, 4th-order stencil: marks near the limb make the depth's
+    square root strongly curved.
+    """
     cols = []
     for j in range(6):
         xi = np.zeros(6)
@@ -37,7 +43,8 @@ def test_interaction_matrix_matches_finite_differences(kind, name):
     target = TARGETS[kind]
     fs = make_feature_set(name, observe(CMO_DESIRED, target))
     worst = 0.0
-    for cMo in random_visible_poses(target, N_POSES, seed=10 * FEATURE_SETS.index(name) + list(TARGETS).index(kind)):
+    seed = 10 * FEATURE_SETS.index(name) + list(TARGETS).index(kind)
+    for cMo in random_visible_poses(target, N_POSES, seed=seed):
         obs = observe(cMo, target)
         L = fs.interaction(obs, target.radius)
         L_fd = fd_interaction(fs, target, cMo)
@@ -47,9 +54,12 @@ def test_interaction_matrix_matches_finite_differences(kind, name):
 
 
 def test_paper_sign_of_L_omega_is_wrong_for_this_convention():
-    """DESIGN.md §3: with θu = log(ᶜ*R_c) and ω in the current frame the [u]× term is '+'.
+    """
+    DESIGN.md §3: with θu = log(ᶜ*R_c) and ω in the current frame the [u]× term is '+'.
+
     The '−' of the paper's eq. (7) disagrees with finite differences; '+' equals
-    Pinocchio's Jlog3 (an independent implementation)."""
+    Pinocchio's Jlog3 (an independent implementation).
+    """
     target = TARGETS['special']
     fs = make_feature_set('s_n', observe(CMO_DESIRED, target))
     cMo = random_visible_poses(target, 1, seed=3)[0]
@@ -63,8 +73,11 @@ def test_paper_sign_of_L_omega_is_wrong_for_this_convention():
 
 
 def fitted_conic(cMo, target) -> np.ndarray:
-    """Conic fitted (least squares, SVD) to projected points of the 3-D occluding contour —
-    independent of the closed form ``b bᵀ − cos²θ I``."""
+    """
+    Fit a conic (least squares, SVD) to projected points of the 3-D occluding contour.
+
+    Independent of the closed form ``b bᵀ − cos²θ I``.
+    """
     cO = cMo.translation
     d = np.linalg.norm(cO)
     b = cO / d

@@ -1,17 +1,16 @@
 """Control law and the headless closed loop (issue 2; paper §III and §IV.A)."""
 from __future__ import annotations
 
+from core_poses import CMO_DESIRED, CMO_FAR_START
 import numpy as np
 import pinocchio as pin
 import pytest
-
-from core_poses import CMO_DESIRED, CMO_FAR_START
 from sphere_servo.core.control import AdaptiveGain, Controller, saturate
 from sphere_servo.core.features import check_radius, make_feature_set
 from sphere_servo.core.geometry import rotation_angle_deg
-from sphere_servo.sim.loop import run_loop
 from sphere_servo.core.measurement import observe
 from sphere_servo.core.targets import cc_target, special_sphere
+from sphere_servo.sim.loop import LoopOutcome, run_loop
 
 
 def test_far_start_is_a_large_displacement_with_marks_visible():
@@ -48,8 +47,12 @@ def test_special_sphere_converges_from_the_same_start(name):
 
 @pytest.mark.parametrize('ratio', [0.05, 0.5, 1.0, 2.0, 20.0])
 def test_sn_converges_for_any_positive_radius_estimate(ratio):
-    """Paper §III: L_sn L̂_sn⁻¹ > 0 ⇔ r̂ > 0. λ·dt = 0.02 keeps the *discrete* loop within
-    its stability margin up to r̂/r = 20 (the paper's proof is in continuous time)."""
+    """
+    Paper §III: L_sn L̂_sn⁻¹ > 0 ⇔ r̂ > 0.
+
+    λ·dt = 0.02 keeps the *discrete* loop within its stability margin up to r̂/r = 20 (the
+    paper's proof is in continuous time).
+    """
     target = special_sphere()
     res = run_loop(target, CMO_FAR_START, CMO_DESIRED, 's_n', r_hat=ratio * target.radius,
                    dt=0.04, gain=0.5, max_iter=30000, tol=1e-3)
@@ -70,8 +73,11 @@ def test_bad_radius_estimate_is_refused(bad):
 
 
 def test_negative_radius_would_diverge():
-    """Necessity side of §III, shown on the loop itself: with r̂ < 0 forced past the check,
-    the translation error grows."""
+    """
+    Necessity side of §III, shown on the loop itself.
+
+    With r̂ < 0 forced past the check, the translation error grows.
+    """
     target = special_sphere()
     fs = make_feature_set('s_n', observe(CMO_DESIRED, target))
     L_neg = fs.interaction_from(fs.desired, 1.0)
@@ -120,12 +126,15 @@ def test_controller_reports_convergence_and_zero_error_at_goal():
 @pytest.mark.parametrize('name', ['s_n', 's'])
 @pytest.mark.parametrize('interaction', ['current', 'desired', 'mean'])
 def test_vector_law_equals_the_observation_law(name, interaction):
-    """The servo node's law (feature vectors only) gives the same twist as the law on
-    observations, for the sets whose L depends on s alone."""
+    """
+    The servo node's law (feature vectors only) equals the law on observations.
+
+    It gives the same twist for the sets whose L depends on s alone.
+    """
     from sphere_servo.core.control import VectorController
     target = special_sphere()
     fs = make_feature_set(name, observe(CMO_DESIRED, target))
-    kw = dict(gain=0.7, interaction=interaction, v_max=0.05, w_max=0.3)
+    kw = {'gain': 0.7, 'interaction': interaction, 'v_max': 0.05, 'w_max': 0.3}
     ctrl = Controller(fs, 0.5 * target.radius, **kw)
     vec = VectorController(name, 0.5 * target.radius, **kw)
     obs = observe(CMO_FAR_START, target)
@@ -141,13 +150,17 @@ def test_loop_reports_a_target_lost_at_the_first_step():
     from core_poses import camera_at
     res = run_loop(special_sphere(), camera_at([0.0, 0.0, 0.5]), CMO_DESIRED, 's_n')
     assert not res.converged and res.iterations == 0
-    assert res.reason.startswith('target lost') and 'hidden' in res.reason
+    assert res.outcome is LoopOutcome.TARGET_LOST and 'hidden' in res.detail
     assert res.e.shape == (0, 6) and res.v.shape == (0, 6)
 
 
 def test_loop_holds_still_through_a_few_lost_frames():
-    """``max_lost``: a dropped observation holds the camera (zero twist, like the servo
-    node) instead of ending the run; more consecutive drops than allowed end it."""
+    """
+    ``max_lost``: a dropped observation holds the camera instead of ending the run.
+
+    It holds still (zero twist, like the servo node); more consecutive drops than allowed
+    end the run.
+    """
     from sphere_servo.core.measurement import MeasurementError
     target = special_sphere()
     calls = {'n': 0}
@@ -164,4 +177,39 @@ def test_loop_holds_still_through_a_few_lost_frames():
     assert np.all(np.diff(res.t) > 0) and np.any(np.diff(res.t) > 0.15)  # gaps in time
     calls['n'] = 0
     res = run_loop(target, CMO_FAR_START, CMO_DESIRED, 's_n', observer=flaky, max_lost=0)
-    assert not res.converged and 'simulated dropout' in res.reason and res.iterations == 2
+    assert not res.converged and res.outcome is LoopOutcome.TARGET_LOST
+    assert 'simulated dropout' in res.detail and res.iterations == 2
+
+
+def test_loop_ends_where_the_plant_stops_it():
+    """
+    A plant's stop ends the run after its step.
+
+    Outcome, detail and joints come from the plant, the pose the step reached is recorded,
+    and the histories up to it equal the free camera's (the same loop).
+    """
+    from sphere_servo.sim.loop import closed_loop
+    from sphere_servo.sim.plants import FreeCamera, PlantStop
+
+    class Stopping(FreeCamera):
+        steps = 0
+
+        def step(self, v_c, dt):
+            super().step(v_c, dt)
+            self.steps += 1
+            if self.steps == 3:
+                return PlantStop(LoopOutcome.JOINT_LIMIT, 'j2 at position limit', ('j2',))
+            return None
+
+    target = special_sphere()
+    plant = Stopping(CMO_FAR_START, CMO_DESIRED)
+    res = closed_loop(plant, target, 's_n')
+    free = run_loop(target, CMO_FAR_START, CMO_DESIRED, 's_n')
+    assert res.outcome is LoopOutcome.JOINT_LIMIT and not res.converged
+    assert res.reason == 'joint_limit: j2 at position limit' and res.limit_joints == ('j2',)
+    assert res.iterations == 3 and len(res.oMc) == 4 and plant.steps == 3
+    np.testing.assert_array_equal(res.oMc[-1], plant.oMc())
+    np.testing.assert_array_equal(res.oMc, free.oMc[:4])
+    np.testing.assert_array_equal(res.v, free.v[:3])
+    assert res.joints is None and res.arm_status is None and res.joint_limits is None
+    assert free.outcome is LoopOutcome.CONVERGED and free.reason == 'converged'

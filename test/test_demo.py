@@ -1,5 +1,9 @@
-"""What the demo's (and the paper report's) ROS figures show: the servo run from the start
-pose on, in the taught camera frame — not the teach sequence before it."""
+"""
+What the demo's (and the paper report's) ROS figures show.
+
+The servo run from the start pose on, in the taught camera frame — not the teach sequence
+before it.
+"""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -11,10 +15,14 @@ from sphere_servo.experiments.demo import ros_figures, run_window
 
 
 def _histories():
-    """A supervisor's histories of a taught run: frames every 0.1 s; 1.0–1.9 s the arm at the
-    desired pose under an earlier, wrong teach (its error is −e0); 2.0–2.4 s at the start
-    pose while the servo is still disabled (zero twists); from 2.5 s the enabled servo brings
-    the camera to 1 mm short of the taught pose, converging at 4.0 s after 16 iterations."""
+    """
+    Make a supervisor's histories of a taught run.
+
+    Frames every 0.1 s; 1.0–1.9 s the arm at the desired pose under an earlier, wrong teach
+    (its error is −e0); 2.0–2.4 s at the start pose while the servo is still disabled (zero
+    twists); from 2.5 s the enabled servo brings the camera to 1 mm short of the taught
+    pose, converging at 4.0 s after 16 iterations.
+    """
     oMc_taught = pin.SE3(pin.exp3(np.array([0.0, 0.1, 0.0])), np.array([0.0, 0.0, -0.45]))
     oMc_start = oMc_taught * pin.SE3(pin.exp3(np.array([0.3, 0.0, 0.2])),
                                      np.array([0.2, 0.1, -0.05]))

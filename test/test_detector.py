@@ -1,22 +1,30 @@
-"""Detector accuracy against ground truth (core.measurement.observe and the camera pose) on
-ray-cast images, and its handling of bad or empty input. DESIGN.md §2."""
+"""
+Detector accuracy against ground truth, and its handling of bad or empty input.
+
+The truth is core.measurement.observe and the camera pose of ray-cast images. DESIGN.md §2.
+"""
 from __future__ import annotations
 
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.measurement import (MeasurementError, cRo_measured, mark_visible,
+from sphere_servo.core.conics import conic_bbox, conic_from_rotated_rect, sampson_distance
+from sphere_servo.core.measurement import (cRo_measured, mark_visible, MeasurementError,
                                            model_cRo_offset, observe)
 from sphere_servo.core.targets import balloon, cc_target, special_sphere
-from sphere_servo.vision.detector import Detector, image_from_buffer
+from sphere_servo.vision.detector import Detector
+from sphere_servo.vision.draw import draw_detection
+from sphere_servo.vision.image import image_from_buffer, LAYOUTS
 from sphere_servo.vision.poses import incidence_deg
 from sphere_servo.vision.poses import random_poses as _random_poses
 from sphere_servo.vision.poses import silhouette_px_conic as _silhouette
-from sphere_servo.vision.renderer import Renderer, conic_bbox
+from sphere_servo.vision.renderer import Renderer
+from sphere_servo.vision.silhouette import Reason
 
 CAM = CameraIntrinsics()          # 640×480, px = py = 600
 # The accuracy pose set: seeded poses at 0.25–1.0 m, sphere fully in view, uniformly random
@@ -40,9 +48,12 @@ def random_poses(target, n, seed, max_incidence=MAX_INCIDENCE):
 
 
 def errors(target, poses, noise=0.0):
-    """Relative s_n,t errors (%) and θu errors (deg) of ᶜR_o measured vs ground truth; θu over
-    the poses whose marks were all measured (a mark left unmeasured must be a partial cap,
-    and there are at most MAX_UNMEASURED of those poses)."""
+    """
+    Measure the relative s_n,t error (%) and the θu error (deg) of ᶜR_o per pose.
+
+    Against ground truth; θu over the poses whose marks were all measured (a mark left
+    unmeasured must be a partial cap, and there are at most MAX_UNMEASURED of those poses).
+    """
     ren = Renderer(CAM, target, noise_sigma=noise, seed=3)
     det = Detector.for_target(target)
     e_s, e_r, unmeasured = [], [], 0
@@ -86,9 +97,12 @@ def test_accuracy_noise_sigma3(name, make):
 
 
 def test_caps_cut_by_the_limb_are_measured_from_their_rim():
-    """Poses with a cap seen at 68–75° incidence (it touches the limb): flagged partial;
-    about half can be measured from their rim (the others are short slivers at a long
-    distance, reported not visible) and those keep θu within the accuracy budget."""
+    """
+    Poses with a cap seen at 68–75° incidence (it touches the limb): flagged partial.
+
+    About half can be measured from their rim (the others are short slivers at a long
+    distance, reported not visible) and those keep θu within the accuracy budget.
+    """
     target = special_sphere()
     poses = [M for M in random_poses(target, 400, seed=31)
              if max(incidence_deg(M, target.oP1), incidence_deg(M, target.oP2)) > 68][:25]
@@ -106,9 +120,12 @@ def test_caps_cut_by_the_limb_are_measured_from_their_rim():
 
 
 def test_dim_light_clutter_touching_the_sphere_is_not_fitted():
-    """Gain 0.7: a bright clutter shape touching the silhouette passes the threshold and
-    merges with it (the gallery's 'clutter_dim' frame); its contour and edge points are
-    rejected because what lies inside them is not body-coloured."""
+    """
+    Gain 0.7: a bright clutter shape touching the silhouette passes the threshold.
+
+    It merges with the sphere (the gallery's 'clutter_dim' frame); its contour and edge
+    points are rejected because what lies inside them is not body-coloured.
+    """
     target = special_sphere()
     cMo = pin.SE3(pin.exp3(np.array([0.35, -0.45, 0.15])), np.array([0.03, 0.04, 0.45]))
     img = Renderer(CAM, target, background='clutter', gain=0.7, seed=1).render(cMo)
@@ -142,8 +159,8 @@ def test_border_cut_up_to_30_percent():
         y = rng.uniform(-0.35, 0.35)
         if rng.random() < 0.5:
             x, y = rng.uniform(-0.5, 0.5), rng.choice([-1, 1]) * rng.uniform(0.28, 0.48)
-        O = np.array([x, y, 1.0])
-        cMo = pin.SE3(pin.exp3(rng.normal(size=3)), O / np.linalg.norm(O) * d)
+        ray = np.array([x, y, 1.0])
+        cMo = pin.SE3(pin.exp3(rng.normal(size=3)), ray / np.linalg.norm(ray) * d)
         f = _outside_fraction(silhouette_px_conic(cMo, target))
         if not 0.02 < f <= 0.30:
             continue
@@ -288,26 +305,89 @@ def test_balloon_is_detected_with_a_worse_quality_than_a_sphere():
     assert q['balloon'] > 5 * q['sphere']
 
 
-def test_conic_helpers_recover_an_ellipse():
-    """fit_conic / sampson_distance / ellipse_params (also used by core.observers): exact on
-    noiseless points of a rotated, off-centre ellipse, whatever the scale of the coordinates
-    (pixels or normalized), and the Sampson distance is the geometric one near the curve."""
-    from sphere_servo.vision.detector import ellipse_params, fit_conic, sampson_distance
-    t = np.linspace(0.0, 2 * np.pi, 37, endpoint=False)[:25]         # a 240° arc
-    for (cx, cy), (a, b), ang in (((412.3, 171.9), (63.0, 41.5), 0.7),
-                                  ((0.21, -0.13), (0.08, 0.05), -1.1)):
-        ca, sa = np.cos(ang), np.sin(ang)
-        xy = np.column_stack([cx + a * ca * np.cos(t) - b * sa * np.sin(t),
-                              cy + a * sa * np.cos(t) + b * ca * np.sin(t)])
-        C = fit_conic(xy)
-        assert abs(np.linalg.norm(C) - 1.0) < 1e-12
-        assert np.abs(sampson_distance(C, xy)).max() < 1e-9 * a
-        (ecx, ecy), (ea, eb), eang = ellipse_params(C)
-        np.testing.assert_allclose([ecx, ecy, ea, eb], [cx, cy, a, b], rtol=1e-9, atol=1e-9 * a)
-        assert abs(np.sin(eang - ang)) < 1e-9
-        # a point δ outside along the normal at t = 0: Sampson ≈ ±δ
-        n = np.array([ca / a, sa / a])
-        n /= np.linalg.norm(n)
-        delta = 1e-3 * b
-        d = sampson_distance(C, (xy[:1] + delta * n))
-        assert abs(abs(d[0]) - delta) < 1e-2 * delta
+def test_a_miss_says_why_with_a_reason():
+    """A miss carries a Reason (enum) and a detail; Detection.reason is their message."""
+    target = special_sphere()
+    det = Detector.for_target(target)
+    small = np.zeros((480, 640, 3), np.uint8)
+    cv2.circle(small, (300, 200), 2, (235, 235, 225), -1)          # ~13 px < min_area_px
+    red = np.full((480, 640, 3), 40, np.uint8)
+    red[200:260, 300:330] = (200, 60, 60)
+    cases = [
+        (np.zeros((480, 640, 3), np.uint8), Reason.NO_BLOB),
+        (small, Reason.TOO_SMALL),
+        (red, Reason.NOT_BODY_COLOURED),
+        (Renderer(CAM, target, gain=0.15).render(pin.SE3(np.eye(3), np.array([0, 0, 0.5]))),
+         Reason.LOW_CONTRAST),
+        (Renderer(CAM, target).render(pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.07]))),
+         Reason.TOO_LARGE),
+    ]
+    for img, why in cases:
+        res = det.detect(img, 'rgb8', CAM)
+        assert not res.found and res.sphere is None and res.conic is None
+        assert res.not_detected.reason is why, (why, res.reason)
+        assert res.reason == str(res.not_detected) and res.reason.startswith(why.value)
+        assert not any(m.visible for m in res.marks.values())
+    assert 'px < 30' in det.detect(small, 'rgb8', CAM).not_detected.detail
+    ok = det.detect(Renderer(CAM, target).render(random_poses(target, 1, seed=5)[0]), 'rgb8',
+                    CAM)
+    assert ok.found and ok.not_detected is None and ok.reason == ''
+
+
+@pytest.mark.parametrize('encoding,dtype,ch', [('mono16', '>u2', 1), ('mono16', '<u2', 1),
+                                               ('32FC1', '<f4', 1), ('rgba8', 'u1', 4),
+                                               ('8UC3', 'u1', 3)])
+def test_buffer_of_other_encodings_decodes_for_the_bag_tools(encoding, dtype, ch):
+    """Bag images (any LAYOUTS encoding, either byte order, row padding) decode exactly."""
+    rng = np.random.default_rng(1)
+    shape = (7, 5) if ch == 1 else (7, 5, ch)
+    img = (rng.uniform(0, 60000, shape) if dtype != 'u1' else rng.integers(0, 255, shape))
+    raw = np.asarray(img, dtype=dtype)
+    row = raw.reshape(7, -1).view(np.uint8)
+    buf = np.zeros((7, row.shape[1] + 6), np.uint8)                # 6 bytes of row padding
+    buf[:, :row.shape[1]] = row
+    out = image_from_buffer(7, 5, buf.shape[1], encoding, buf.tobytes(),
+                            is_bigendian=dtype.startswith('>'), encodings=LAYOUTS)
+    assert out.dtype.isnative and out.shape == shape
+    np.testing.assert_array_equal(out, raw.astype(out.dtype))
+    with pytest.raises(ValueError, match='encoding'):
+        image_from_buffer(7, 5, buf.shape[1], encoding, buf.tobytes())   # not a detector's
+    with pytest.raises(ValueError, match='step'):
+        image_from_buffer(7, 5, buf.shape[1], encoding, buf.tobytes() + b'\0',
+                          encodings=LAYOUTS)
+
+
+def test_draw_detection_draws_what_was_detected():
+    """
+    The overlay's green ellipse lies on the fitted one and crosses sit on the marks.
+
+    Labels, truth circles and the status line appear only when asked.
+    """
+    target = special_sphere()
+    cMo = random_poses(target, 1, seed=6)[0]
+    img = Renderer(CAM, target).render(cMo)
+    plain = img.copy()
+    det = Detector.for_target(target).detect(img, 'rgb8', CAM)
+    assert det.found and all(m.visible for m in det.marks.values())
+    out = draw_detection(img, det).astype(int)
+    np.testing.assert_array_equal(img, plain)                     # drawn on a copy
+    green = (out[..., 1] > 200) & (out[..., 0] < 90) & (out[..., 2] < 90) \
+        & (np.abs(out - plain).sum(axis=2) > 60)
+    v, u = np.nonzero(green)
+    (uc, vc), (w, h), ang = det.ellipse_px
+    C = conic_from_rotated_rect(uc, vc, w, h, ang)
+    assert u.size > 100
+    assert np.abs(sampson_distance(C, np.column_stack([u, v]))).max() < 1.5
+    for m in det.marks.values():
+        uu, vv = (int(round(c)) for c in m.uv_px)
+        np.testing.assert_array_equal(out[vv, uu], (255, 255, 0))
+    bare = draw_detection(img, det, labels=False).astype(int)
+    assert np.count_nonzero(np.abs(out - bare).sum(axis=2)) > 10    # the names
+    assert np.array_equal(bare[:30, :300], plain[:30, :300])         # no status line
+    truth = [CAM.project(cMo.act(target.oP1)[None])[0]]
+    full = draw_detection(img, det, labels=False, truth_uv=truth, status=True).astype(int)
+    assert not np.array_equal(full[:30, :300], plain[:30, :300])
+    tu, tv = truth[0]
+    ring = np.nonzero(np.abs(full - bare).sum(axis=2)[40:, :] > 0)
+    r = np.hypot(ring[1] - tu, ring[0] + 40 - tv)
+    assert r.size > 10 and np.all((r > 4) & (r < 8)), (r.min(), r.max())

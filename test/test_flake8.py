@@ -17,8 +17,8 @@ import pytest
 
 
 @pytest.mark.flake8
-@pytest.mark.xfail(strict=True, reason="issue 12: the lint findings are being fixed")
 @pytest.mark.linter
+@pytest.mark.slow
 def test_flake8():
     rc, errors = main_with_errors(argv=[])
     assert rc == 0, \

@@ -1,26 +1,31 @@
-"""The closed loop over ROS 2 (issue 5), in launch_testing's spirit: the installed
-executables (colcon build into a temporary install space, resolved as ``ros2 run`` does) are
-started as processes on the test's own ROS_DOMAIN_ID; the test waits for topics, asserts on
-their content, then checks clean exit codes. Lockstep simulation: results do not depend on
-the machine's speed."""
+"""
+The closed loop over ROS 2 (issue 5), in launch_testing's spirit.
+
+The installed executables (colcon build into a temporary install space, resolved as
+``ros2 run`` does) are started as processes on the test's own ROS_DOMAIN_ID; the test waits
+for topics, asserts on their content, then checks clean exit codes. Lockstep simulation:
+results do not depend on the machine's speed.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
+from conftest import executable_path, wait_for
+from geometry_msgs.msg import PoseStamped, TwistStamped
 import numpy as np
 import pinocchio as pin
 import pytest
-from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
 from sensor_msgs.msg import CameraInfo, Image, JointState
-
-from conftest import executable_path, wait_for
+from sphere_servo.bringup.processes import Launcher
+from sphere_servo.bringup.supervisor import Supervisor
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.experiments.scenarios import CMO_DESIRED
 from sphere_servo.core.targets import special_sphere
+from sphere_servo.experiments.scenarios import CMO_DESIRED
+from sphere_servo.pipeline.config import scenario
+from sphere_servo.pipeline.servo import ServoState
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, header,
-                                            image_from_array, se3_from_pose)
+                                          image_from_array, se3_from_pose)
 from sphere_servo.sim.arm import pose_from_xyz_rpy
-from sphere_servo.bringup import launcher
 from sphere_servo.vision.renderer import Renderer
 
 EXECUTABLES = ('arm_sim', 'detector', 'features', 'servo', 'launcher', 'record', 'replay',
@@ -32,8 +37,7 @@ def stamp(msg) -> float:
 
 
 def desired_cMo(config_name: str) -> pin.SE3:
-    cfg = launcher.load_config(launcher.find_config(config_name))
-    d = launcher.node_params(cfg, 'arm_sim')['desired_cMo']
+    d = scenario(config_name).node_params('arm_sim')['desired_cMo']
     return pose_from_xyz_rpy(d[:3], d[3:])
 
 
@@ -44,11 +48,10 @@ class Topics:
         self.poses, self.twists, self.meas = [], [], []
         node.create_subscription(PoseStamped, 'ground_truth/camera_pose',
                                  lambda m: self.poses.append(m), 1000)
-        node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped',
+        node.create_subscription(TwistStamped, 'camera/cmd_vel',
                                  lambda m: self.twists.append(m), 1000)
         node.create_subscription(JointState, 'detector/measurement',
                                  lambda m: self.meas.append(m), 1000)
-
 
 
 @pytest.mark.parametrize('config, ideal', [
@@ -65,6 +68,11 @@ def test_full_loop_converges(config, ideal, launch, test_node):
     assert 'converged after' in log
     # every node stopped cleanly (the launcher reports non-zero exit codes)
     assert 'exit codes:' not in log, log[-2000:]
+    # the commands are camera twists, stamped: those that answer an image carry its stamp,
+    # the watchdog's a zero one; all of them in the camera optical frame
+    assert topics.twists and {t.header.frame_id for t in topics.twists} == {
+        'camera_optical_frame'}
+    topics.twists = [t for t in topics.twists if stamp(t) > 0]
     cMo_final = se3_from_pose(topics.poses[-1].pose).inverse()
     cdMc = desired_cMo(config) * cMo_final.inverse()
     t_err = float(np.linalg.norm(cdMc.translation))
@@ -87,8 +95,7 @@ def test_full_loop_converges(config, ideal, launch, test_node):
     # twists follow the images in order. (The exact header chain image → measurement →
     # features → twist is asserted node by node below; this observer may miss messages on a
     # loaded machine, so it does not match sets here.)
-    period = 1.0 / launcher.node_params(launcher.load_config(launcher.find_config(config)),
-                                        'arm_sim').get('camera_rate', 30.0)
+    period = 1.0 / scenario(config).node_params('arm_sim').get('camera_rate', 30.0)
     for msgs in (topics.meas, topics.twists):
         k = (np.array([stamp(m) for m in msgs]) - 1.0) / period  # sim time starts at 1 s
         assert np.allclose(k, np.round(k), atol=1e-6), 'a stamp that is not a frame time'
@@ -96,9 +103,12 @@ def test_full_loop_converges(config, ideal, launch, test_node):
 
 
 def test_lockstep_runs_are_the_same_run(launch):
-    """Two lockstep runs of the same config converge after the same number of iterations to
-    the same pose, however the machine's load delays DDS traffic (the servo answers the
-    current frame only, so one frame is in flight)."""
+    """
+    Two lockstep runs of one config converge in the same iterations to the same pose.
+
+    However the machine's load delays DDS traffic: the servo answers the current frame
+    only, so one frame is in flight.
+    """
     import re
     runs = []
     for _ in range(2):
@@ -185,50 +195,71 @@ def test_detector_survives_garbage_images(launch, test_node):
 
 
 def test_servo_safety(launch, test_node):
-    """Zero twist when waiting, when the target is lost, on a malformed or NaN input, when
-    only late images come for longer than ``timeout``, and as the last word on Ctrl-C; a
-    late image is not answered; a real twist carries the image stamp and its age in
-    servo/state."""
-    from diagnostic_msgs.msg import DiagnosticStatus
-    from sphere_servo.ros.vectors import features_msg
+    """
+    Send a zero twist whenever the servo cannot servo.
+
+    That is: when waiting, when the target is lost, on a malformed or NaN input, when only
+    late images come for longer than ``timeout``, before a desired, and as the last word on
+    Ctrl-C; a late image is not answered; a real twist carries the image stamp and its age
+    in servo/state.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sphere_servo.ros.vectors import DESIRED_QOS, features_msg
     node, spin = test_node
     twists, stamped, states = [], [], []
-    subs = [node.create_subscription(Twist, 'camera/cmd_vel', twists.append, 50),
-            node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append,
-                                     50),
-            node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 100)]
+
+    def on_twist(m):  # all of them, and those that answer an image (a non-zero stamp)
+        twists.append(m)
+        if stamp(m) > 0:
+            stamped.append(m)
+    subs = [node.create_subscription(TwistStamped, 'camera/cmd_vel', on_twist, 50),
+            node.create_subscription(DiagnosticArray, 'servo/state',
+                                     lambda m: states.append(m.status[0]), 100)]
     pub = node.create_publisher(JointState, 'features/s_n', 10)
+    pub_desired = node.create_publisher(JointState, 'features/s_n/desired', DESIRED_QOS)
     proc = launch('servo', '--ros-args', '-p', 'timeout:=0.3', '-p', 'max_image_age:=0.5')
     # every topic matched both ways before the first features (volatile: nothing is resent)
     assert spin(20.0, until=lambda: pub.get_subscription_count() > 0 and all(
         sub.get_publisher_count() > 0 for sub in subs)), proc.log()
     assert spin(20.0, until=lambda: len(twists) > 3), proc.log()  # waiting: zeros
-    assert all(_norm(t) == 0 for t in twists)
+    assert all(_norm(t.twist) == 0 for t in twists)
+    assert all(stamp(t) == 0 and t.header.frame_id == 'camera_optical_frame' for t in twists)
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
+
     def now() -> float:  # image stamps on the servo's (wall) clock, as a camera stamps them
         return round(node.get_clock().now().nanoseconds * 1e-9, 3)
 
     def at(m, t) -> bool:  # stamps near 1.8e9 s do not round-trip through float exactly
         return abs(stamp(m) - t) < 1e-6
-    t_ok = now()
-    pub.publish(features_msg('s_n', header(t_ok, 'cam'), s, s_star))
+    t_early = now()  # features before any desired: a zero twist, and the servo says why
+    pub.publish(features_msg('s_n', header(t_early, 'cam'), s))
+    assert spin(5.0, until=lambda: any(at(m, t_early) for m in stamped)), proc.log()
+    assert _norm([m for m in stamped if at(m, t_early)][0].twist) == 0
+    assert spin(5.0, until=lambda: any(m.message == ServoState.NO_DESIRED.value
+                                       for m in states))
+    assert 'state: no desired (no desired features yet)' in proc.log()
+    pub_desired.publish(features_msg('s_n', header(1.0, 'cam'), s_star))
+    assert spin(5.0, until=lambda: 'desired features of the image stamped 1.000000000'
+                in proc.log()), proc.log()
+    t_ok = max(now(), t_early + 0.001)
+    pub.publish(features_msg('s_n', header(t_ok, 'cam'), s))
     assert spin(5.0, until=lambda: any(at(m, t_ok) for m in stamped)), proc.log()
     moving = [m for m in stamped if at(m, t_ok)][0]
     assert _norm(moving.twist) > 0
-    assert spin(5.0, until=lambda: any(m.message == 'servoing' for m in states))
-    state = [m for m in states if m.message == 'servoing'][-1]
+    assert spin(5.0, until=lambda: any(m.message == ServoState.SERVOING.value for m in states))
+    state = [m for m in states if m.message == ServoState.SERVOING.value][-1]
     age = float({kv.key: kv.value for kv in state.values}['image_age'])
     assert 0.0 <= age < 0.5, age
     cases = [lambda t: features_msg('s_n', header(t, 'cam')),                   # lost
-             lambda t: features_msg('s_n', header(t, 'cam'), s * np.nan, s_star),  # NaN
+             lambda t: features_msg('s_n', header(t, 'cam'), s * np.nan),          # NaN
              lambda t: JointState(header=header(t, 'cam'), name=['x'], position=[1.0])]
     for make in cases:
         t = max(now(), max(stamp(m) for m in stamped) + 0.001)  # fresh and not a repeat
         pub.publish(make(t))
         assert spin(5.0, until=lambda: any(at(m, t) for m in stamped)), proc.log()
         assert _norm([m for m in stamped if at(m, t)][0].twist) == 0
-        assert spin(5.0, until=lambda: any(m.message == 'target lost' and {
+        assert spin(5.0, until=lambda: any(m.message == ServoState.TARGET_LOST.value and {
             kv.key: kv.value for kv in m.values}.get('stamp', '').startswith(str(int(t)))
             for m in states))
     # late images (2 s old, max_image_age 0.5 s) are not answered; with nothing else for
@@ -236,30 +267,37 @@ def test_servo_safety(launch, test_node):
     twists.clear()
     t_late = now()
     for k in range(8):
-        pub.publish(features_msg('s_n', header(t_late - 2.0 + 0.01 * k, 'cam'), s, s_star))
+        pub.publish(features_msg('s_n', header(t_late - 2.0 + 0.01 * k, 'cam'), s))
         spin(0.1)
     assert not [m for m in stamped if stamp(m) < t_late - 1.0], 'a late image was answered'
     assert 'skipping features of an image' in proc.log()
-    assert any(m.message == 'stale' for m in states[-5:]), [m.message for m in states[-5:]]
-    assert twists and all(_norm(t) == 0 for t in twists)
+    assert any(m.message == ServoState.STALE.value for m in states[-5:]), [
+        m.message for m in states[-5:]]
+    assert twists and all(_norm(t.twist) == 0 for t in twists)
     twists.clear()
     assert proc.stop() == 0
     spin(0.5)
-    assert twists and _norm(twists[-1]) == 0  # the last word is a zero twist
-    assert 'nan' not in ''.join(str(t) for t in twists).lower()
+    assert twists and _norm(twists[-1].twist) == 0  # the last word is a zero twist
+    assert 'nan' not in ''.join(str(t.twist) for t in twists).lower()
 
 
 def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
-    """use_sim_time + max_image_age 0 (the lockstep configs): features of the frame at the
-    simulator's clock are answered, those of an older frame are skipped (no twist: in
-    lockstep a twist steps the simulator), and a repeat of the same frame is answered once."""
+    """
+    Answer the current frame once in lockstep (use_sim_time, max_image_age 0).
+
+    Features of the frame at the simulator's clock are answered, those of an older frame
+    are skipped (no twist: in lockstep a twist steps the simulator), and a repeat of the
+    same frame is answered once.
+    """
     from rosgraph_msgs.msg import Clock
     from sphere_servo.ros.conversions import stamp_from_seconds
-    from sphere_servo.ros.vectors import features_msg
+    from sphere_servo.ros.vectors import DESIRED_QOS, features_msg
     node, spin = test_node
     stamped = []
-    node.create_subscription(TwistStamped, 'camera/cmd_vel_stamped', stamped.append, 50)
+    node.create_subscription(TwistStamped, 'camera/cmd_vel',
+                             lambda m: stamped.append(m) if stamp(m) > 0 else None, 50)
     pub = node.create_publisher(JointState, 'features/s_n', 10)
+    pub_desired = node.create_publisher(JointState, 'features/s_n/desired', DESIRED_QOS)
     clock = node.create_publisher(Clock, '/clock', 10)
     proc = launch('servo', '--ros-args', '-p', 'use_sim_time:=true', '-p',
                   'max_image_age:=0.0', '-p', 'timeout:=5.0')
@@ -268,21 +306,23 @@ def test_servo_in_lockstep_answers_the_current_frame_once(launch, test_node):
     s_star = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     s = s_star + np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.2])
     frame = 1.0 / 30.0
+    pub_desired.publish(features_msg('s_n', header(9.0, 'cam'), s_star))
+    assert spin(10.0, until=lambda: 'desired features of the image stamped' in proc.log())
 
     def at(t):  # the simulator at frame t: its clock, then the features of that frame
         for _ in range(3):
             clock.publish(Clock(clock=stamp_from_seconds(t)))
             spin(0.05)
-        pub.publish(features_msg('s_n', header(t, 'cam'), s, s_star))
+        pub.publish(features_msg('s_n', header(t, 'cam'), s))
 
     at(10.0)
     assert spin(5.0, until=lambda: [stamp(m) for m in stamped] == [10.0]), proc.log()
     clock.publish(Clock(clock=stamp_from_seconds(10.0 + frame)))
     spin(0.2)
-    pub.publish(features_msg('s_n', header(10.0 - frame, 'cam'), s, s_star))  # superseded
+    pub.publish(features_msg('s_n', header(10.0 - frame, 'cam'), s))  # superseded
     at(10.0 + frame)
     assert spin(5.0, until=lambda: len(stamped) == 2), proc.log()
-    pub.publish(features_msg('s_n', header(10.0 + frame, 'cam'), s, s_star))  # a repeat
+    pub.publish(features_msg('s_n', header(10.0 + frame, 'cam'), s))  # a repeat
     spin(1.0)
     assert [round(stamp(m), 4) for m in stamped] == [10.0, round(10.0 + frame, 4)], \
         proc.log()
@@ -300,34 +340,39 @@ def _stamp_s(msg) -> float:
 
 
 def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
-    """Kill ``detector`` mid-run: the servo sends zero velocity within its timeout and the
-    arm stops; restart it: the loop resumes and converges."""
+    """
+    Kill ``detector`` mid-run: the arm stops; restart it: the loop converges.
+
+    The servo sends zero velocity within its timeout and the arm stops; after the restart
+    the loop resumes and converges.
+    """
     import time
-    cfg = launcher.load_config(launcher.find_config('special_sphere'))
-    timeout = launcher.node_params(cfg, 'servo')['timeout']
+    cfg = scenario('special_sphere')
+    timeout = cfg.node_params('servo')['timeout']
     out = open(tmp_path / 'launch.log', 'w')
-    run = launcher.Launcher(cfg, out=out, env=ros_env)
+    run = Launcher(cfg, out=out, env=ros_env)
     sup = None
     try:
         run.start()
-        sup = launcher.Supervisor(cfg, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+        sup = Supervisor(cfg, domain_id=int(ros_env['ROS_DOMAIN_ID']))
         twists, joints = [], []
-        sup.node.create_subscription(Twist, 'camera/cmd_vel',
-                                     lambda m: twists.append((time.monotonic(), m)), 50)
+        sup.node.create_subscription(TwistStamped, 'camera/cmd_vel',
+                                     lambda m: twists.append((time.monotonic(), m.twist)), 50)
         sup.node.create_subscription(JointState, 'joint_states',
                                      lambda m: joints.append((time.monotonic(), m)), 50)
         sup.teach(lambda msg: out.write(msg + '\n'), lambda: not run.dead())
         assert sup.wait(lambda: int(sup.state_values.get('iteration', 0)) > 60, 60.0)
-        assert sup.state == 'servoing'
+        assert sup.state is ServoState.SERVOING
         run.children['detector'].popen.kill()
         t_kill = time.monotonic()
         sup.spin(timeout + 1.0)
-        assert sup.state == 'stale', sup.state
+        assert sup.state is ServoState.STALE, sup.state
         late = [m for t, m in twists if t > t_kill + timeout + 0.2]
         assert late and all(_norm(m) == 0 for m in late)
         # at rest: the newest joint states (by sim stamp; under load Fast DDS delivers the
         # small topics up to seconds late, so arrival time says little) have zero
         # velocities and one position: the stale servo's zeros step the lockstep sim
+
         def newest(k=3):
             return sorted(joints, key=lambda tm: _stamp_s(tm[1]))[-k:]
         sup.wait(lambda: all(np.allclose(m.velocity, 0.0) for _, m in newest()), 10.0)
@@ -345,8 +390,8 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
             sup.close()
         codes = run.stop()
         out.close()
-    assert all(code == 0 for name, code in codes.items()), (codes, (tmp_path / 'launch.log')
-                                                             .read_text()[-3000:])
+    log = (tmp_path / 'launch.log').read_text()[-3000:]
+    assert all(code == 0 for name, code in codes.items()), (codes, log)
 
 
 def _exact_measurement(cMo, target, t: float):
@@ -362,21 +407,27 @@ def _exact_measurement(cMo, target, t: float):
 
 
 def test_features_node_carries_stamps_and_teaches(launch, test_node):
-    """features: no output before a desired exists; ~/teach takes the latest measurement;
-    then every measurement gives features stamped with its header, s − s* = 0 on the taught
-    image; an empty measurement gives an empty (target lost) features message."""
+    """
+    Check that features carry the image stamps and teach from the latest measurement.
+
+    No output before a desired exists; ~/teach takes the latest measurement; then every
+    measurement gives features stamped with its header, s − s* = 0 on the taught image; an
+    empty measurement gives an empty (target lost) features message. The desired comes on
+    its own topic with the taught image's header; the features carry s only.
+    """
     from std_srvs.srv import Trigger
-    from sphere_servo.ros.vectors import measurement_msg
+    from sphere_servo.ros.vectors import DESIRED_QOS, measurement_msg
     node, spin = test_node
-    feats = []
+    feats, desired = [], []
     node.create_subscription(JointState, 'features/s_n', feats.append, 100)
+    node.create_subscription(JointState, 'features/s_n/desired', desired.append, DESIRED_QOS)
     pub = node.create_publisher(JointState, 'detector/measurement', 10)
     proc = launch('features')
     assert spin(20.0, until=lambda: pub.get_subscription_count() > 0), proc.log()
     for t in (1.5, 1.6, 1.7):
         pub.publish(_exact_measurement(CMO_DESIRED, special_sphere(), t))
         spin(0.2)
-    assert not feats  # nothing before the desired is set
+    assert not feats and not desired  # nothing before the desired is set
     cli = node.create_client(Trigger, '/features/teach')
     assert spin(10.0, until=cli.service_is_ready)
     fut = cli.call_async(Trigger.Request())
@@ -388,16 +439,25 @@ def test_features_node_carries_stamps_and_teaches(launch, test_node):
     pub.publish(measurement_msg(None, header(2.2, 'cam')))
     assert spin(10.0, until=lambda: len(feats) >= 3), proc.log()
     assert [stamp(f) for f in feats[:3]] == [2.0, 2.1, 2.2]
-    assert np.allclose(feats[0].effort, 0.0) and np.allclose(feats[0].position[:3],
-                                                             CMO_DESIRED.translation / 0.05)
+    hdr = desired[0].header
+    assert len(desired) == 1 and (hdr.stamp.sec, hdr.stamp.nanosec, hdr.frame_id) == (
+        1, 700_000_000, 'cam')
+    assert list(desired[0].name) == list(feats[0].name)
+    s_star = np.array(desired[0].position)
+    assert np.allclose(np.array(feats[0].position) - s_star, 0.0) and np.allclose(
+        feats[0].position[:3], CMO_DESIRED.translation / 0.05)
+    assert not len(feats[0].velocity) and not len(feats[0].effort)  # s only
     assert len(feats[2].name) == 0
     assert proc.stop() == 0
 
 
 def test_features_desired_from_a_pose_in_the_parameters(launch, test_node):
-    """desired_source: pose — s* is the exact projection from ``desired_cMo``: a
-    measurement at that pose gives s − s* = 0, one from elsewhere gives the ground-truth
-    error ((t − t*)/r for s_n,t; log(ᶜ*R_c) = log(R* Rᵀ) for θu)."""
+    """
+    Take s* from ``desired_cMo`` (desired_source: pose): the exact projection.
+
+    A measurement at that pose gives s − s* = 0, one from elsewhere gives the ground-truth
+    error ((t − t*)/r for s_n,t; log(ᶜ*R_c) = log(R* Rᵀ) for θu).
+    """
     import pinocchio as pin
     node, spin = test_node
     target = special_sphere()
@@ -412,18 +472,29 @@ def test_features_desired_from_a_pose_in_the_parameters(launch, test_node):
     pub.publish(_exact_measurement(cMo_d, target, 2.0))
     pub.publish(_exact_measurement(CMO_DESIRED, target, 2.1))
     assert spin(10.0, until=lambda: len(feats) >= 2), proc.log()
+    # subscribed after it was published: transient-local, and no image (a zero stamp)
+    from sphere_servo.ros.vectors import DESIRED_QOS
+    desired = []
+    node.create_subscription(JointState, 'features/s_n/desired', desired.append, DESIRED_QOS)
+    assert spin(10.0, until=lambda: bool(desired)), proc.log()
+    assert (stamp(desired[0]), desired[0].header.frame_id) == (0.0, 'camera_optical_frame')
+    s_star = np.array(desired[0].position)
     at, away = feats[:2]
-    np.testing.assert_allclose(at.effort, 0.0, atol=1e-9)
-    np.testing.assert_allclose(at.velocity[:3], cMo_d.translation / target.radius, atol=1e-9)
+    np.testing.assert_allclose(np.array(at.position) - s_star, 0.0, atol=1e-9)
+    np.testing.assert_allclose(s_star[:3], cMo_d.translation / target.radius, atol=1e-9)
     e_t = (CMO_DESIRED.translation - cMo_d.translation) / target.radius
     e_r = pin.log3(cMo_d.rotation @ CMO_DESIRED.rotation.T)
-    np.testing.assert_allclose(away.effort, np.concatenate([e_t, e_r]), atol=1e-9)
+    np.testing.assert_allclose(np.array(away.position) - s_star, np.concatenate([e_t, e_r]),
+                               atol=1e-9)
     assert proc.stop() == 0
 
 
 def test_detector_overlay_draws_the_published_ellipse(launch, test_node):
-    """publish_overlay: the frame with the detection drawn, under the image's header; the
-    green ellipse lies where the measurement says."""
+    """
+    Publish the overlay (publish_overlay): the frame with the detection drawn.
+
+    It carries the image's header, and the green ellipse lies where the measurement says.
+    """
     node, spin = test_node
     overlays, meas = [], []
     node.create_subscription(Image, 'detector/overlay', overlays.append, 10)
@@ -471,10 +542,12 @@ def test_colcon_recognises_an_ament_python_package():
 def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
     node, spin = test_node
     states = []
-    from diagnostic_msgs.msg import DiagnosticStatus
-    node.create_subscription(DiagnosticStatus, 'servo/state', lambda m: states.append(m), 50)
+    from diagnostic_msgs.msg import DiagnosticArray
+    node.create_subscription(DiagnosticArray, 'servo/state',
+                             lambda m: states.append(m.status[0]), 50)
     proc = launch('launcher', '--config', 'special_sphere')
-    assert spin(90.0, until=lambda: any(m.message == 'servoing' for m in states)), proc.log()
+    assert spin(90.0, until=lambda: any(m.message == ServoState.SERVOING.value
+                                        for m in states)), proc.log()
     assert proc.stop(timeout=30.0) == 0, proc.log()[-3000:]
     log = proc.log()
     assert 'interrupted: stopping the nodes' in log
@@ -483,8 +556,11 @@ def test_launcher_stops_every_node_cleanly_on_ctrl_c(launch, test_node):
 
 
 def _node_pids(domain: str) -> dict[int, str]:
-    """Live (not zombie) processes of installed sphere_servo executables on ``domain``:
-    pid → executable name, from /proc."""
+    """
+    Find the live (not zombie) sphere_servo executables on ``domain``.
+
+    Returns pid → executable name, from /proc.
+    """
     found = {}
     for d in Path('/proc').iterdir():
         try:
@@ -500,14 +576,19 @@ def _node_pids(domain: str) -> dict[int, str]:
 
 
 def test_nodes_die_with_a_killed_launcher(launch, test_node, ros_env):
-    """A launcher killed outright (SIGKILL: no chance to stop its nodes) must not leave
-    orphaned nodes driving the arm: each gets SIGTERM from the kernel and exits cleanly."""
-    from diagnostic_msgs.msg import DiagnosticStatus
+    """
+    Leave no orphaned node driving the arm when the launcher is killed with SIGKILL.
+
+    The launcher has no chance to stop its nodes: each gets SIGTERM from the kernel and
+    exits cleanly.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray
     node, spin = test_node
     states = []
-    node.create_subscription(DiagnosticStatus, 'servo/state', states.append, 10)
+    node.create_subscription(DiagnosticArray, 'servo/state', states.append, 10)
     proc = launch('launcher', '--config', 'special_sphere')
     assert spin(60.0, until=lambda: bool(states)), proc.log()
+
     def nodes():
         return {pid: name for pid, name in _node_pids(ros_env['ROS_DOMAIN_ID']).items()
                 if pid != proc.popen.pid}
@@ -523,8 +604,11 @@ def test_nodes_die_with_a_killed_launcher(launch, test_node, ros_env):
 
 
 def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
-    """desired_source: image — the desired image file is detected with the camera_info
-    intrinsics; the same image's measurement then gives zero error."""
+    """
+    Detect the desired image file (desired_source: image) with the camera_info intrinsics.
+
+    The same image's measurement then gives zero error.
+    """
     import cv2
     from sphere_servo.ros.vectors import measurement_msg
     from sphere_servo.vision.detector import Detector
@@ -533,8 +617,10 @@ def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
     img = Renderer(cam, special_sphere()).render(CMO_DESIRED)
     path = tmp_path / 'desired.png'
     cv2.imwrite(str(path), img[..., ::-1])
-    feats = []
+    from sphere_servo.ros.vectors import DESIRED_QOS
+    feats, desired = [], []
     node.create_subscription(JointState, 'features/s_n', feats.append, 50)
+    node.create_subscription(JointState, 'features/s_n/desired', desired.append, DESIRED_QOS)
     pub_info = node.create_publisher(CameraInfo, 'camera/camera_info', 10)
     pub = node.create_publisher(JointState, 'detector/measurement', 10)
     proc = launch('features', '--ros-args', '-p', 'desired_source:=image', '-p',
@@ -547,6 +633,9 @@ def test_desired_features_from_an_image_file(launch, test_node, tmp_path):
         if spin(0.2, until=lambda: bool(feats)):
             break
     assert feats, proc.log()
-    assert np.allclose(feats[-1].effort, 0.0, atol=1e-9)
+    assert spin(5.0, until=lambda: bool(desired)), proc.log()
+    # an image file is not an image of the run: a zero stamp, the camera_info's frame
+    assert (stamp(desired[0]), desired[0].header.frame_id) == (0.0, 'cam')
+    assert np.allclose(np.array(feats[-1].position) - desired[0].position, 0.0, atol=1e-9)
     assert 'desired features set' in proc.log()
     assert proc.stop() == 0

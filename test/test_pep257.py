@@ -18,7 +18,6 @@ import pytest
 
 @pytest.mark.linter
 @pytest.mark.pep257
-@pytest.mark.xfail(strict=True, reason="issue 12: the lint findings are being fixed")
 def test_pep257():
     rc = main(argv=['.', 'test'])
     assert rc == 0, 'Found code style errors / warnings'

@@ -1,33 +1,38 @@
-"""The replay pipeline: a live lockstep run recorded by the launcher, its images run again
-through detector + features (+ the servo, open loop) offline by ``refeatures`` and, over ROS,
-by ``replay`` into the real ``detector`` and ``features`` nodes; both reproduce the recorded
-``features/s_n`` message for message."""
+"""
+The replay pipeline: a live lockstep run, its images run again offline and over ROS.
+
+The run is recorded by the launcher; its images go through detector + features (+ the
+servo, open loop) offline by ``refeatures`` and, over ROS, by ``replay`` into the real
+``detector`` and ``features`` nodes; both reproduce the recorded ``features/s_n`` message
+for message.
+"""
 from __future__ import annotations
 
+from contextlib import redirect_stderr, redirect_stdout
 import io
 import json
+from pathlib import Path
 import re
 import subprocess
 import time
-from contextlib import redirect_stderr, redirect_stdout
-from pathlib import Path
-
-import numpy as np
-import pytest
 
 from conftest import _acquire_domain_id, executable_path
+import numpy as np
+import pytest
 
 pytest.importorskip('rclpy')
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
-
-from sphere_servo.bag import bagio, refeatures as rf  # noqa: E402
+from sphere_servo.bag import bagio, desired, offline, refeatures as rf  # noqa: E402
 
 
 @pytest.fixture(scope='module')
 def lockstep_run(install_space, tmp_path_factory):
-    """A live lockstep special-sphere run to convergence, recorded by the launcher:
-    (bag path, launcher log, the stamp of the image the launcher last taught)."""
+    """
+    Run the special sphere live in lockstep to convergence, recorded by the launcher.
+
+    Returns (bag path, launcher log, the stamp of the image the launcher last taught).
+    """
     tmp = tmp_path_factory.mktemp('lockstep')
     domain, lock = _acquire_domain_id()  # held while the run's nodes live
     env = dict(install_space, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1',
@@ -52,7 +57,7 @@ def _features(bag: Path) -> list:
     """(image stamp ns, names, s, s*, s − s*) of every features/s_n message of a bag."""
     with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
         conns = [c for c in reader.connections if c.topic == '/features/s_n']
-        return [(rf.stamp_ns(m.header), list(m.name), m.position, m.velocity, m.effort)
+        return [(offline.header_ns(m.header), list(m.name), m.position, m.velocity, m.effort)
                 for m in (reader.deserialize(raw, c.msgtype)
                           for c, _, raw in reader.messages(connections=conns))]
 
@@ -61,13 +66,16 @@ def _stamps(bag: Path, topic: str) -> list:
     """Header stamps (ns) of every message on ``topic``."""
     with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
-        return [rf.stamp_ns(reader.deserialize(raw, c.msgtype).header)
+        return [offline.header_ns(reader.deserialize(raw, c.msgtype).header)
                 for c, _, raw in reader.messages(connections=conns)]
 
 
 def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
-    """Offline: the installed ``refeatures`` (the code the live nodes ran) regenerates the
-    run's features/s_n from its images, message for message."""
+    """
+    Regenerate offline the run's features/s_n from its images, message for message.
+
+    With the installed ``refeatures``: the code the live nodes ran.
+    """
     bag, log, taught = lockstep_run
     out_bag, report = tmp_path / 'regen', tmp_path / 'report.json'
     p = subprocess.run([executable_path(install_space, 'refeatures'), str(bag), '--config',
@@ -85,15 +93,17 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
     assert rep['desired'][-1]['taught_stamp_ns'] == taught, rep['desired']
     topics = rep['topics']
     # the detector reproduces every recorded measurement whose image is in the bag
-    meas = topics[rf.MEAS_TOPIC]
+    meas = topics[offline.MEAS_TOPIC]
     assert meas['matched'] == meas['common'] > 100 and meas['max_diff'] == 0.0, meas
     # the open-loop servo answers exactly the images the live servo answered (its recorded
     # states say which: it skips superseded ones, and it is stopped before the last images)
     # and reproduces every recorded twist
-    tw = topics[rf.TWIST_TOPIC]
+    tw = topics[offline.TWIST_TOPIC]
     assert tw['matched'] == tw['recorded'] - tw['no_image'] == tw['regenerated'] > 100, tw
     assert tw['max_diff'] <= 1e-12, tw
-    rec_tw, gen_tw = _stamps(bag, rf.TWIST_TOPIC), _stamps(out_bag, rf.TWIST_TOPIC)
+    # (the twists that answer an image: the watchdog's carry a zero stamp)
+    rec_tw = [t for t in _stamps(bag, offline.TWIST_TOPIC) if t]
+    gen_tw = _stamps(out_bag, offline.TWIST_TOPIC)
     assert sorted(gen_tw) == sorted(rec_tw), tw
 
     # s_n, read back from the two bags: same count, same image stamps, same numbers
@@ -105,37 +115,52 @@ def test_regenerated_s_n_equals_recorded(lockstep_run, install_space, tmp_path):
             np.testing.assert_allclose(y, x, rtol=0, atol=1e-12)
     with AnyReader([out_bag], default_typestore=bagio.typestore()) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
-    assert counts == {rf.MEAS_TOPIC: rep['images'], '/features/s_n': len(rec),
-                      rf.TWIST_TOPIC: tw['regenerated']}
+    assert counts == {offline.MEAS_TOPIC: rep['images'], '/features/s_n': len(rec),
+                      offline.TWIST_TOPIC: tw['regenerated'],
+                      '/features/s_n/desired': len(rep['desired'])}
+    # each desired the run taught, regenerated with the taught image's header
+    des = topics['/features/s_n/desired']
+    assert des['matched'] == des['recorded'] == des['regenerated'] == len(rep['desired'])
+    assert des['max_diff'] <= 1e-12, des
 
 
 def test_launcher_waits_for_the_recorder_before_the_run(lockstep_run):
-    """``--record``: the teach sequence begins only once the recorder reports that it
-    records every topic, so the bag holds the run from its first taught image (under load the
-    recorder used to discover the servo's topics after the first teach)."""
+    """
+    Begin the teach sequence only once the recorder records every topic (``--record``).
+
+    So the bag holds the run from its first taught image (under load the recorder used to
+    discover the servo's topics after the first teach).
+    """
     _, log, _ = lockstep_run
     ready = log.index('[launcher] recording every topic')
     assert ready < log.index('[launcher] arm at the desired pose'), log[:4000]
 
 
 def test_taught_image_first_in_the_bag(lockstep_run):
-    """A bag that starts at the taught image (recording began at the teach, or the bag was
-    cut there): the desired is that first image, not a crash on an empty search."""
+    """
+    Find the desired in a bag that starts at the taught image.
+
+    Recording began at the teach, or the bag was cut there: the desired is that first
+    image, not a crash on an empty search.
+    """
     bag, _, taught = lockstep_run
-    pipe = rf.Pipeline(rf.load_settings('special_sphere'))
-    with rf.bag(bag) as reader:
-        rec = rf.read_topic(reader, rf.features_topic('s_n'))
-        meas = rf.read_topic(reader, rf.MEAS_TOPIC)
-        cams = rf.Cameras(pipe, rf.read_topic(reader, rf.INFO_TOPIC))
+    pipe = offline.Pipeline(offline.load_settings('special_sphere'))
+    with bagio.bag(bag) as reader:
+        rec = offline.read_topic(reader, offline.features_topic('s_n'))
+        des = offline.read_topic(reader, offline.desired_topic('s_n'))
+        cams = offline.Cameras(pipe, offline.read_topic(reader, offline.INFO_TOPIC))
         frames = []
-        for i, ts, img in rf.iter_image_msgs(reader, rf.IMAGE_TOPIC):
-            st = rf.stamp_ns(img.header)
-            frames.append(rf.Frame(i, ts, st, pipe.measure(img, cams(ts, st))))
+        for i, ts, img in offline.iter_image_msgs(reader, offline.IMAGE_TOPIC):
+            frames.append(pipe.frame(i, ts, img, cams(ts, offline.header_ns(img.header))))
     # cut the bag at the first features message under the taught s*: its image is frame 0
-    rec = [(t, m) for t, m in rec if rf.stamp_ns(m.header) >= taught]
-    first = rf.stamp_ns(rec[0][1].header)
+    rec = [(t, m) for t, m in rec if offline.header_ns(m.header) >= taught]
+    des = [(t, m) for t, m in des if offline.header_ns(m.header) == taught]
+    first = offline.header_ns(rec[0][1].header)
     k = next(i for i, f in enumerate(frames) if f.stamp == first)
-    ds = rf._auto_desired(pipe, frames[k:], {'s_n': rec}, ['s_n'], meas)
+    ds = desired.auto_desired(pipe, frames[k:], {'s_n': rec}, {'s_n': des})
+    # the taught image (stamped `taught`) is cut off unless the first features came from a
+    # re-publication of it: then it is the image that reproduces its s*
+    assert ('is not in the bag' in ds[0].note) == (first > taught), ds[0].note
     # the first desired is taught from frame 0 itself (an empty search, a crash, before)
     assert ds[0].frame.stamp == first and ds[0].start == frames[k].index
 
@@ -160,9 +185,13 @@ def test_compare_sets_plot(lockstep_run, tmp_path):
 
 
 def test_replay_over_ros_reproduces_s_n(lockstep_run, launch, test_node, tmp_path):
-    """(a) over ROS: the taught image exported as a PNG, the bag's images replayed into the
-    real detector and features nodes (desired_source: image); their s_n after the teach
-    equals the recorded one."""
+    """
+    Reproduce the recorded s_n over ROS.
+
+    The taught image exported as a PNG, the bag's images replayed into the real detector
+    and features nodes (desired_source: image); their s_n after the teach equals the
+    recorded one.
+    """
     from sensor_msgs.msg import JointState
     bag, _, taught = lockstep_run
     png = tmp_path / 'desired.png'
@@ -174,8 +203,9 @@ def test_replay_over_ros_reproduces_s_n(lockstep_run, launch, test_node, tmp_pat
     feat = launch('features', '--ros-args', '-p', 'desired_source:=image',
                   '-p', f'desired_image:={png}')
     with bagio.bag(bag) as reader:
-        rec = rf.read_topic(reader, '/features/s_n')
-        images = {rf.stamp_ns(m.header) for _, m in rf.read_topic(reader, '/camera/image_raw')}
+        rec = offline.read_topic(reader, '/features/s_n')
+        images = {offline.header_ns(m.header)
+                  for _, m in offline.read_topic(reader, '/camera/image_raw')}
     # prime the chain with the bag's first image until an s_n comes back: then test node ←
     # features ← detector are matched (the graph alone says nothing about matching, and a
     # slow discovery would cost the first replayed images)
@@ -200,16 +230,16 @@ def test_replay_over_ros_reproduces_s_n(lockstep_run, launch, test_node, tmp_pat
         node.destroy_publisher(pub)
     rep = launch('replay', str(bag), '--topics', '/camera/image_raw', '/camera/camera_info',
                  '--wait-for-subscribers', '15', '--delay', '0.5')
-    last = rf.stamp_ns(rec[-1][1].header)
+    last = offline.header_ns(rec[-1][1].header)
     spin(60.0, until=lambda: rep.popen.poll() is not None and got and
-         rf.stamp_ns(got[-1].header) >= last)
+         offline.header_ns(got[-1].header) >= last)
     spin(0.5)
     assert rep.popen.wait(10) == 0, rep.log()
     assert 'Traceback' not in det.log() + feat.log(), det.log() + feat.log()
     # after the last teach: the same messages, in the same order (of the images in the bag)
-    after = [(st, m) for _, m in rec if (st := rf.stamp_ns(m.header)) > taught and
+    after = [(st, m) for _, m in rec if (st := offline.header_ns(m.header)) > taught and
              st in images]
-    live = [(st, m) for m in got if (st := rf.stamp_ns(m.header)) > taught]
+    live = [(st, m) for m in got if (st := offline.header_ns(m.header)) > taught]
     assert len(live) == len(after) > 100
     for (sa, a), (sb, b) in zip(after, live):
         assert sa == sb and list(a.name) == list(b.name)
@@ -274,3 +304,52 @@ def test_bad_inputs(tmp_path):
     # a blank image: no sphere, so the taught image cannot anchor the features
     code, _, err = _run([str(tmp_path / 'images'), '--desired', 'stamp:1.0'])
     assert code == 1 and 'cannot teach' in err, err
+
+
+def test_an_old_layout_bag_is_refused(tmp_path):
+    """A bag whose features carry s* in ``velocity`` (before the desired topic): one line."""
+    _images_only_bag(tmp_path / 'old')
+    ts = bagio.typestore()
+    T = ts.types
+    with Writer(tmp_path / 'old2', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection('/features/s_n', 'sensor_msgs/msg/JointState', typestore=ts)
+        msg = T['sensor_msgs/msg/JointState'](
+            header=T['std_msgs/msg/Header'](stamp=T['builtin_interfaces/msg/Time'](
+                sec=1, nanosec=0), frame_id='c'),
+            name=['s_nt_x', 's_nt_y', 's_nt_z', 'thetau_x', 'thetau_y', 'thetau_z'],
+            position=np.ones(6), velocity=np.ones(6), effort=np.zeros(6))
+        w.write(conn, 3, ts.serialize_cdr(msg, 'sensor_msgs/msg/JointState'))
+        for topic, kind in (('/camera/camera_info', 'sensor_msgs/msg/CameraInfo'),
+                            ('/camera/image_raw', 'sensor_msgs/msg/Image')):
+            with bagio.bag(tmp_path / 'old') as reader:
+                c = next(c for c in reader.connections if c.topic == topic)
+                raw = next(r for _, _, r in bagio.iter_raw(reader, [c]))
+            w.write(w.add_connection(topic, kind, typestore=ts), 1, raw)
+    code, out, err = _run([str(tmp_path / 'old2')])
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 1 and len(lines) == 1 and 'old features layout' in lines[0], err
+
+
+def test_regenerated_messages_are_written_as_exact_cdr():
+    """What write_bag writes reads back the same with rclpy and with rosbags (strict)."""
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import JointState
+    from sphere_servo.bag.compare import cdr
+    from sphere_servo.ros.conversions import header, twist_from_array
+    from sphere_servo.ros.vectors import features_msg, measurement_msg
+    msgs = [(features_msg('s_n', header(1.5, 'camera_optical_frame'), np.arange(6.0) / 7),
+             'sensor_msgs/msg/JointState'),
+            (features_msg('s_cc', header(2.0, 'c')), 'sensor_msgs/msg/JointState'),
+            (measurement_msg(None, header(3.0, 'c')), 'sensor_msgs/msg/JointState'),
+            (TwistStamped(header=header(4.25, 'c'), twist=twist_from_array(np.arange(6.0))),
+             'geometry_msgs/msg/TwistStamped')]
+    for msg, msgtype in msgs:
+        raw = cdr(msg, msgtype)
+        assert deserialize_message(raw, type(msg)) == msg
+        back = bagio.typestore().deserialize_cdr(raw, msgtype)
+        assert (back.header.stamp.sec, back.header.stamp.nanosec, back.header.frame_id) == (
+            msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
+        if isinstance(msg, JointState):
+            assert list(back.name) == list(msg.name)
+            np.testing.assert_array_equal(back.position, np.asarray(msg.position))

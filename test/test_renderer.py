@@ -16,9 +16,9 @@ BG = 40                                     # the 'flat' background level
 
 def analytic_disc(cMo, target):
     """(H, W) bool: pixel centres inside the silhouette cone ``(bᵀx̄)² ≥ cos²θ ‖x̄‖²``."""
-    O = np.asarray(cMo.translation)
-    b = O / np.linalg.norm(O)
-    cos2 = 1 - (target.radius / np.linalg.norm(O)) ** 2
+    cO = np.asarray(cMo.translation)
+    b = cO / np.linalg.norm(cO)
+    cos2 = 1 - (target.radius / np.linalg.norm(cO)) ** 2
     v, u = np.mgrid[0:CAM.height, 0:CAM.width]
     x, y = (u - CAM.u0) / CAM.px, (v - CAM.v0) / CAM.py
     return (b[0] * x + b[1] * y + b[2]) ** 2 >= cos2 * (x * x + y * y + 1)
@@ -35,8 +35,8 @@ def test_silhouette_matches_the_analytic_conic(seed):
     rng = np.random.default_rng(seed)
     target = special_sphere()
     d = rng.uniform(0.25, 1.0)
-    O = np.array([rng.uniform(-.2, .2), rng.uniform(-.15, .15), 1.0])
-    cMo = pin.SE3(pin.exp3(rng.normal(size=3)), O / np.linalg.norm(O) * d)
+    ray = np.array([rng.uniform(-.2, .2), rng.uniform(-.15, .15), 1.0])
+    cMo = pin.SE3(pin.exp3(rng.normal(size=3)), ray / np.linalg.norm(ray) * d)
     img = Renderer(CAM, target, background='flat').render(cMo)
     truth = analytic_disc(cMo, target)
     mask = img.max(axis=2) > BG + 30    # dark side ≥ ambient·albedo ≫ background
@@ -108,9 +108,9 @@ def test_cc_tip_occluded_when_behind_the_sphere():
         # only clear cases: tip well hidden or well in view (not half-occluded)
         P3 = cMo.act(target.oP2)
         q = P3 / np.linalg.norm(P3)
-        O = cMo.translation
-        ang = np.degrees(np.arccos(q @ O / np.linalg.norm(O)))
-        edge = np.degrees(np.arcsin(target.radius / np.linalg.norm(O)))
+        cO = cMo.translation
+        ang = np.degrees(np.arccos(q @ cO / np.linalg.norm(cO)))
+        edge = np.degrees(np.arcsin(target.radius / np.linalg.norm(cO)))
         if abs(ang - edge) < 3:
             continue
         n = colour_mask(ren.render(cMo), tip).sum()

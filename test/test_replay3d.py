@@ -1,7 +1,7 @@
 """
 Test the 3-D replay page of a run (``experiments/replay3d.py``).
 
-The page is made from a recorded headless UR5 run (``run_bag``). It must not reference
+The page is made from a UR5 run recorded from the nodes' cores (``run_bag``). It must not reference
 anything a browser would fetch (checked in its text, in its decoded scene commands, and in
 a real headless Chromium, whose DevTools protocol reports every request the page makes), and
 Chromium must render the arm: the pixels that change when the robot is hidden are the arm's
@@ -21,9 +21,10 @@ import cv2
 import numpy as np
 import pinocchio as pin
 import pytest
-from run_bag import _arm_scene, run_bag
+from run_bag import run_bag
+from sphere_servo.bag.run import load_arm_params, read_run
 from sphere_servo.experiments import replay3d
-from sphere_servo.experiments.runbag import read_run
+from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy
 
 SIZE = (1000, 700)
 FOV_DEG = 75.0  # meshcat's default PerspectiveCamera (vertical field of view)
@@ -148,7 +149,7 @@ class Silhouette:
     """
 
     def __init__(self):
-        self.arm = _arm_scene()[0]
+        self.arm = ArmModel()  # the URDF's kinematics: the camera does not matter here
         share = Path(self.arm.urdf_path).parents[4]
         self.geom = pin.buildGeomFromUrdf(self.arm.model, self.arm.urdf_path,
                                           pin.GeometryType.VISUAL, package_dirs=[str(share)])
@@ -195,7 +196,9 @@ def test_a_browser_renders_the_arm_where_it_is(page, recorded, tmp_path):
     assert _iou(changed, first) > 0.8 > _iou(changed, last), \
         (_iou(changed, first), _iou(changed, last))
     # the target is drawn with or without the robot, where it projects
-    tu, tv = np.round(_project([_arm_scene()[0].wMo.translation])[0]).astype(int)
+    tp = load_arm_params('special_sphere').target_pose
+    wMo = pose_from_xyz_rpy(tp[:3], tp[3:])
+    tu, tv = np.round(_project([wMo.translation])[0]).astype(int)
     for name in ('arm', 'no_arm'):
         px = imgs[name][tv, tu].astype(int)
         assert px.min() > 150, f'{name}: no white sphere at the target ({px})'
@@ -206,10 +209,13 @@ def test_a_browser_renders_the_arm_where_it_is(page, recorded, tmp_path):
 
 
 def test_bad_inputs(recorded, tmp_path):
+    params = Path(__file__).resolve().parents[1] / 'config' / 'params'
+    (tmp_path / 'hand_eye.yaml').write_text(
+        'arm_sim:\n  ros__parameters:\n    hand_eye: [0.0, -0.05, 0.02, 0.0, 0.0, 0.0]\n')
     cfg = tmp_path / 'other_hand_eye.yaml'
-    special = Path(__file__).resolve().parents[1] / 'config' / 'special_sphere.yaml'
-    cfg.write_text(f'launch:\n  include: [{special}]\narm_sim:\n  ros__parameters:\n'
-                   '    hand_eye: [0.0, -0.05, 0.02, 0.0, 0.0, 0.0]\n')
+    cfg.write_text(f'nodes: [arm_sim, detector, features, servo]\nparams: ['
+                   f'{params / "arm_sim.yaml"}, {params / "special_sphere.yaml"}, '
+                   'hand_eye.yaml]\n')
     cases = {'another arm': ([recorded.bag, '--config', cfg], 'disagree by up to'),
              'no such bag': ([tmp_path / 'nope'], 'does not exist'),
              'unknown config': ([recorded.bag, '--config', 'nope'], 'not found')}

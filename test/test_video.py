@@ -1,7 +1,7 @@
 """
 Test the video of a run (``experiments/video.py``), made from a recorded bag.
 
-The bag is a headless UR5 servo run recorded with the nodes' own codecs (``run_bag``). The
+The bag is a UR5 servo run recorded from the nodes' cores and codecs (``run_bag``). The
 video is decoded with OpenCV and measured on its pixels: the sphere found in the frame
 against the goal ring drawn in it, and the goal ring against the taught measurement.
 """
@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from run_bag import run_bag, to_rosbags
+from run_bag import run_bag
+from sphere_servo.bag.run import read_run
 from sphere_servo.experiments import video
-from sphere_servo.experiments.runbag import read_run
 
 W, H = 640, 480
 
@@ -129,7 +129,8 @@ def test_target_starts_away_from_the_goal_and_ends_on_it(recorded, made):
 
 def test_frames_and_desired_of_the_run(recorded):
     run = read_run(recorded.bag)
-    assert len(run.frames) == recorded.iterations
+    # one frame per iteration, as the servo counted them in its recorded states
+    assert len(run.frames) == run.iterations == recorded.iterations
     assert run.desired.how == 'taught' and run.desired.stamp == recorded.taught_stamp
     assert run.desired.values == recorded.desired_meas
     assert run.frames == sorted(run.frames)
@@ -142,7 +143,7 @@ def test_desired_without_features_is_the_last_converged_image(tmp_path):
     run = read_run(rec.bag)
     assert run.desired.how == 'last converged'
     assert run.desired.stamp == run.frames[-1]
-    assert 'no features messages' in run.desired.note
+    assert 'no features/<set>/desired messages' in run.desired.note
 
 
 def _bag(path: Path, with_image_topic: bool) -> None:
@@ -150,12 +151,13 @@ def _bag(path: Path, with_image_topic: bool) -> None:
     from sensor_msgs.msg import JointState
 
     from sphere_servo.bag.bagio import typestore
+    from sphere_servo.bag.compare import cdr
     from sphere_servo.ros.conversions import header
     ts = typestore()
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         conn = w.add_connection('/joint_states', 'sensor_msgs/msg/JointState', typestore=ts)
-        msg = to_rosbags(JointState(header=header(1.0, ''), name=['a'], position=[0.0]))
-        w.write(conn, 1, ts.serialize_cdr(msg, 'sensor_msgs/msg/JointState'))
+        msg = JointState(header=header(1.0, ''), name=['a'], position=[0.0])
+        w.write(conn, 1, cdr(msg, 'sensor_msgs/msg/JointState'))
         if with_image_topic:
             w.add_connection('/camera/image_raw', 'sensor_msgs/msg/Image', typestore=ts)
 

@@ -17,24 +17,31 @@ pytest.importorskip('rclpy')
 from rosbags.highlevel import AnyReader  # noqa: E402
 
 from sphere_servo.bag import bagio  # noqa: E402
+from sphere_servo.bag.run import read_run  # noqa: E402
 from sphere_servo.experiments import replay3d, video  # noqa: E402
-from sphere_servo.experiments.runbag import read_run  # noqa: E402
 from test_refeatures import lockstep_run  # noqa: E402, F401 - the recorded run
 from test_replay3d import _commands  # noqa: E402
 from test_video import _decode, goal_ring, sphere_centre  # noqa: E402
 
 
-def _servo_iterations(bag) -> int:
-    """Distinct images the enabled servo answered, by its own ``servo/state`` messages."""
+def _servo_iterations(bag) -> tuple[int, int]:
+    """
+    Count the servo's iterations by its own ``servo/state`` messages (DiagnosticArray).
+
+    Returns the distinct images it answered while enabled (the ``stamp`` value) and its last
+    ``iteration`` value.
+    """
     with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
         conns = [c for c in reader.connections if c.topic == '/servo/state']
-        stamps = set()
+        stamps, last = set(), 0
         for c, _, raw in reader.messages(connections=conns):
-            m = reader.deserialize(raw, c.msgtype)
-            vals = {kv.key: kv.value for kv in m.values}
-            if m.message in ('servoing', 'converged', 'target lost') and 'stamp' in vals:
+            st = reader.deserialize(raw, c.msgtype).status[0]
+            vals = {kv.key: kv.value for kv in st.values}
+            if st.message in ('servoing', 'converged', 'target lost', 'no desired') \
+                    and 'stamp' in vals:
                 stamps.add(vals['stamp'])
-    return len(stamps)
+                last = int(vals['iteration'])
+    return len(stamps), last
 
 
 def test_video_and_replay_of_a_ros_run(lockstep_run, tmp_path):  # noqa: F811
@@ -44,7 +51,8 @@ def test_video_and_replay_of_a_ros_run(lockstep_run, tmp_path):  # noqa: F811
     out = tmp_path / 'servo.mp4'
     assert video.main([str(bag), '-o', str(out), '--quiet']) == 0
     frames = _decode(out)
-    assert len(frames) == _servo_iterations(bag) > 50
+    answered, iterations = _servo_iterations(bag)
+    assert len(frames) == answered == iterations > 50
     cams = [f[:480, :640] for f in frames]
     ring0, d0 = goal_ring(cams[0])
     ring1, _ = goal_ring(cams[-1])

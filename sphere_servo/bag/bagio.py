@@ -1,56 +1,33 @@
-"""rosbag2 files without ROS: open and validate a bag, list its topics, iterate raw
-messages, summarise its metadata, and decode its images for offline processing.
+"""
+rosbag2 files without ROS.
 
-Pure module (no rclpy), built on the ``rosbags`` library; shared by the ``record`` and
-``replay`` executables and by offline pipelines (``iter_images``). Every failure to read a
-bag is raised as :class:`BagError` with a one-line message fit for a command line.
+Open and validate a bag, list its topics, select what to play, iterate raw messages,
+summarise it, and decode its images for offline processing.
+
+Pure module (no rclpy); shared by the ``record``, ``replay`` and ``reindex`` executables and
+by offline pipelines (``iter_images``). Bags are read by :class:`~sphere_servo.bag.reader.
+BagReader` (every rosbag2 of Jazzy or older: MCAP or sqlite3, split, with or without
+``metadata.yaml``, topics matched by name as rosbag2 does). Every failure to read a bag is
+raised as :class:`BagError` with a one-line message fit for a command line.
 """
 from __future__ import annotations
 
-import sqlite3
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
-
-from rosbags.highlevel import AnyReader
-from rosbags.interfaces import Connection, Qos, QosTime
-from rosbags.typesys import Stores, get_typestore
+from rosbags.interfaces import Connection
+from sphere_servo.bag.metadata import BagError, INFINITE_NS, qos_dict, qos_time
+from sphere_servo.bag.reader import BagReader, one_line, typestore
+from sphere_servo.vision.image import image_from_buffer, LAYOUTS
 
 __all__ = [
     'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'select_connections',
-    'summary', 'format_summary', 'iter_raw', 'image_to_array', 'iter_images', 'typestore',
-    'INFINITE_NS', 'qos_time',
+    'Skipped', 'Selection', 'select', 'summary', 'format_summary', 'iter_raw',
+    'image_to_array', 'iter_images', 'typestore', 'INFINITE_NS', 'qos_time',
 ]
-
-# rmw's "infinite" duration (RMW_DURATION_INFINITE), as `ros2 bag` writes it in QoS metadata
-INFINITE_NS = 2**63 - 1
-_TYPESTORE = None
-
-
-class BagError(ValueError):
-    """A bag cannot be created, opened or read; the message is one line."""
-
-
-def typestore():
-    """The Jazzy typestore (built once)."""
-    global _TYPESTORE
-    if _TYPESTORE is None:
-        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-    return _TYPESTORE
-
-
-def _one_line(err: BaseException) -> str:
-    text = ' '.join(str(err).split()) or type(err).__name__
-    return text if len(text) <= 300 else text[:297] + '...'
-
-
-def qos_time(ns: int) -> QosTime:
-    """A duration in ns as QoS metadata time (infinite → sec 9223372036, nsec 854775807)."""
-    ns = min(max(int(ns), 0), INFINITE_NS)
-    return QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
 
 
 def topic_name(name: str) -> str:
@@ -60,7 +37,7 @@ def topic_name(name: str) -> str:
 
 
 def check_new_output(path: str | Path) -> Path:
-    """The output path for a new bag; it must not exist (rosbag2 never overwrites)."""
+    """Return the output path for a new bag; it must not exist (rosbag2 never overwrites)."""
     path = Path(path)
     if path.exists():
         raise BagError(f'output path {str(path)!r} exists already; choose a new one')
@@ -69,77 +46,22 @@ def check_new_output(path: str | Path) -> Path:
     return path
 
 
-def _bag_dir(path: str | Path) -> Path:
-    path = Path(path)
-    if not path.exists():
-        raise BagError(f'no such bag: {str(path)!r} does not exist')
-    if path.is_file():
-        if path.suffix in ('.mcap', '.db3') and (path.parent / 'metadata.yaml').is_file():
-            return path.parent
-        raise BagError(f'{str(path)!r} is not a rosbag2 bag: give the bag directory '
-                       '(with metadata.yaml)')
-    if not (path / 'metadata.yaml').is_file():
-        raise BagError(f'{str(path)!r} is not a rosbag2 bag: no metadata.yaml in it')
-    return path
+def open_bag(path: str | Path) -> BagReader:
+    """
+    Open a rosbag2 (directory, or bare ``.mcap`` / ``.db3``) for reading, or raise BagError.
 
-
-def _metadata(bag_dir: Path) -> dict:
-    try:
-        meta = yaml.safe_load((bag_dir / 'metadata.yaml').read_text())
-    except (OSError, yaml.YAMLError):
-        return {}
-    info = meta.get('rosbag2_bagfile_information') if isinstance(meta, dict) else None
-    return info if isinstance(info, dict) else {}
-
-
-def _check_storage(bag_dir: Path) -> None:
-    """Integrity of sqlite3 files, which rosbags only notices midway through a bag (MCAP's
-    summary section, read at open, already catches a truncated MCAP)."""
-    info = _metadata(bag_dir)
-    db3 = [bag_dir / Path(x).name for x in info.get('relative_file_paths') or []
-           if str(x).endswith('.db3')]
-    total = 0
-    for f in db3:
-        try:
-            con = sqlite3.connect(f'file:{f}?mode=ro', uri=True)
-            try:
-                res = con.execute('PRAGMA quick_check').fetchone()
-                total += con.execute('SELECT count(*) FROM messages').fetchone()[0]
-            finally:
-                con.close()
-        except sqlite3.Error as err:
-            raise BagError(f'cannot read bag {str(bag_dir)!r}: {f.name}: {_one_line(err)}') \
-                from None
-        if not res or res[0] != 'ok':
-            raise BagError(f'cannot read bag {str(bag_dir)!r}: {f.name} is corrupt')
-    expected = info.get('message_count')
-    if db3 and len(db3) == len(info.get('relative_file_paths') or []) and \
-            isinstance(expected, int) and total != expected:
-        raise BagError(f'cannot read bag {str(bag_dir)!r}: its db3 holds {total} messages, '
-                       f'metadata.yaml says {expected} (truncated?)')
-
-
-def open_bag(path: str | Path) -> AnyReader:
-    """Open a rosbag2 directory (MCAP or sqlite3) for reading, or raise :class:`BagError`.
-
-    The caller closes the returned reader (or use :func:`bag`)."""
-    bag_dir = _bag_dir(path)
-    reader = AnyReader([bag_dir], default_typestore=typestore())
-    try:
-        reader.open()
-    except Exception as err:  # rosbags raises several types; all mean "unreadable"
-        raise BagError(f'cannot read bag {str(bag_dir)!r}: {_one_line(err)}') from None
-    try:
-        _check_storage(bag_dir)
-    except BagError:
-        reader.close()
-        raise
-    return reader
+    The caller closes the returned reader (or use :func:`bag`).
+    """
+    return BagReader(path).open_files()
 
 
 @contextmanager
-def bag(path: str | Path) -> Iterator[AnyReader]:
-    """``with bag(path) as reader:`` — :func:`open_bag` as a context manager."""
+def bag(path: str | Path) -> Iterator[BagReader]:
+    """
+    Open a bag as a context manager (:func:`open_bag`, then close the reader).
+
+    ``with bag(path) as reader:``
+    """
     reader = open_bag(path)
     try:
         yield reader
@@ -147,124 +69,190 @@ def bag(path: str | Path) -> Iterator[AnyReader]:
         reader.close()
 
 
-def select_connections(reader: AnyReader, topics: Iterable[str] | None = None) -> list[Connection]:
-    """The bag's connections on ``topics`` (all when None/empty); unknown topic → BagError."""
+def _match(conns: list[Connection], wanted: str) -> list[Connection]:
+    """Return the connections on ``wanted``: as stored, else by fully qualified name."""
+    exact = [c for c in conns if c.topic == wanted]
+    return exact or [c for c in conns if topic_name(c.topic) == topic_name(wanted)]
+
+
+def select_connections(reader: BagReader, topics: Iterable[str] | None = None,
+                       ) -> list[Connection]:
+    """
+    Select the connections on ``topics`` (all when None/empty); unknown topic → BagError.
+
+    A topic is found by its name as stored or by its fully qualified name: ``AAA`` and
+    ``/AAA`` both select a topic the bag stores as ``AAA`` (relative, as rosbag2 may write
+    it) or as ``/AAA``.
+    """
     conns = list(reader.connections)
     if not topics:
         return conns
-    wanted = [topic_name(t) for t in topics]
-    have = {c.topic for c in conns}
-    missing = [t for t in wanted if t not in have]
+    chosen: dict[int, Connection] = {}
+    missing = []
+    for t in topics:
+        found = _match(conns, t.strip())
+        if not found:
+            missing.append(t)
+        chosen.update((c.id, c) for c in found)
     if missing:
         raise BagError(f'topic {", ".join(missing)} not in bag; it has: '
-                       f'{", ".join(sorted(have)) or "(no topics)"}')
-    return [c for c in conns if c.topic in wanted]
+                       f'{", ".join(sorted(c.topic for c in conns)) or "(no topics)"}')
+    return [c for c in conns if c.id in chosen]
 
 
-def _qos_dict(q: Qos) -> dict:
+@dataclass(frozen=True)
+class Skipped:
+    """A topic of the bag that will not be played, and why."""
+
+    topic: str
+    msgtype: str
+    count: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What a replay of a bag plays: its connections, and the topics left out."""
+
+    connections: list
+    skipped: list
+
+    @property
+    def count(self) -> int:
+        """Messages that will be played (one pass)."""
+        return sum(c.msgcount for c in self.connections)
+
+
+def select(reader: BagReader, topics: Iterable[str] | None = None, unplayable=None,
+           ) -> Selection:
+    """
+    Select what to play: ``topics`` (all when None/empty) minus what cannot be played.
+
+    ``unplayable(connection)`` returns why a topic cannot be played, or None (default: only
+    CDR serialization is played). As ``ros2 bag play``, a topic that cannot be played is
+    skipped, with its reason in :attr:`Selection.skipped`, unless it was asked for by name:
+    then :class:`BagError` says why.
+    """
+    asked = bool(topics)
+    conns = select_connections(reader, topics)
+
+    def why(c):
+        if c.ext.serialization_format != 'cdr':
+            return f'serialization format {c.ext.serialization_format!r} is not cdr'
+        return unplayable(c) if unplayable is not None else None
+
+    keep, skipped = [], []
+    for c in conns:
+        reason = why(c)
+        if reason is None:
+            keep.append(c)
+        elif asked:
+            raise BagError(f'cannot play {c.topic} [{c.msgtype}]: {reason}')
+        else:
+            skipped.append(Skipped(c.topic, c.msgtype, c.msgcount, reason))
+    return Selection(keep, skipped)
+
+
+def summary(reader: BagReader, topics: Iterable[str] | None = None, unplayable=None) -> dict:
+    """
+    Summarise what a replay plays (:func:`select`): storage, times, counts, topics.
+
+    ``message_count`` and ``topics`` (name, type, count, QoS) count what will be played, as
+    read from the storage; ``skipped`` lists the other topics (name, type, count, reason),
+    ``stored_count`` every message the storage holds.
+    """
+    sel = select(reader, topics, unplayable)
+    tops = [{'name': c.topic, 'type': c.msgtype, 'count': c.msgcount,
+             'qos': [qos_dict(q) for q in c.ext.offered_qos_profiles]}
+            for c in sel.connections]
+    meta = reader.meta
+    count = sel.count
+    start, end = (reader.start_time, reader.end_time) if count else (0, 0)
     return {
-        'history': q.history.name.lower(), 'depth': q.depth,
-        'reliability': q.reliability.name.lower(), 'durability': q.durability.name.lower(),
-        'liveliness': q.liveliness.name.lower(),
-        'deadline': q.deadline._asdict(), 'lifespan': q.lifespan._asdict(),
-        'liveliness_lease_duration': q.liveliness_lease_duration._asdict(),
-        'avoid_ros_namespace_conventions': q.avoid_ros_namespace_conventions,
-    }
-
-
-def summary(reader: AnyReader) -> dict:
-    """Metadata summary: storage, version, times, counts, and per topic type/count/QoS."""
-    topics: dict[str, dict] = {}
-    for c in reader.connections:
-        t = topics.setdefault(c.topic, {'name': c.topic, 'type': c.msgtype, 'count': 0,
-                                        'qos': []})
-        t['count'] += c.msgcount
-        t['qos'].extend(_qos_dict(q) for q in getattr(c.ext, 'offered_qos_profiles', []))
-    files = []
-    for rd in reader.readers:
-        files.extend(str(Path(rd.path) / Path(x).name)
-                     for x in _metadata(Path(rd.path)).get('relative_file_paths') or [])
-    info = _metadata(Path(reader.paths[0])) if reader.paths else {}
-    start, end = reader.start_time, reader.end_time
-    count = sum(t['count'] for t in topics.values())
-    if count == 0:
-        start = end = 0
-    return {
-        'paths': [str(p) for p in reader.paths], 'files': files,
-        'storage': info.get('storage_identifier'), 'version': info.get('version'),
-        'compression': (info.get('compression_mode') or None,
-                        info.get('compression_format') or None),
+        'paths': [str(p) for p in reader.paths], 'files': [str(f) for f in reader.files],
+        'source': reader.source, 'storage': reader.storage,
+        'version': meta.version if meta else None,
+        'ros_distro': meta.ros_distro if meta else None,
+        'compression': (meta.compression_mode or None, meta.compression_format or None)
+        if meta else (None, None),
         'start_ns': start, 'end_ns': end, 'duration_s': max(0, end - start) / 1e9,
-        'message_count': count, 'topics': sorted(topics.values(), key=lambda t: t['name']),
+        'message_count': count, 'stored_count': reader.stored_count,
+        'topics': sorted(tops, key=lambda t: t['name']),
+        'skipped': [{'name': s.topic, 'type': s.msgtype, 'count': s.count, 'reason': s.reason}
+                    for s in sel.skipped],
+        'warnings': list(reader.warnings),
     }
 
 
 def format_summary(s: dict) -> str:
     """``ros2 bag info``-like text of :func:`summary`."""
     lines = [f'Files:    {", ".join(Path(f).name for f in s["files"])}',
-             f'Storage:  {s["storage"]}',
+             f'Storage:  {s["storage"]}' + ('' if s.get('source', 'metadata.yaml') ==
+                                            'metadata.yaml' else ' (no metadata.yaml)'),
              f'Duration: {s["duration_s"]:.3f} s',
-             f'Messages: {s["message_count"]}',
+             f'Messages: {s["message_count"]}' + (
+                 f' of {s["stored_count"]} stored' if s.get('skipped') else ''),
              'Topics:']
     for t in s['topics']:
         lines.append(f'  {t["name"]} | {t["type"]} | {t["count"]} msgs')
+    for t in s.get('skipped', []):
+        lines.append(f'  {t["name"]} | {t["type"]} | {t["count"]} msgs | skipped: '
+                     f'{t["reason"]}')
     return '\n'.join(lines)
 
 
-def iter_raw(reader: AnyReader, connections: list[Connection] | None = None,
+def iter_raw(reader: BagReader, connections: list[Connection] | None = None,
              ) -> Iterator[tuple[Connection, int, bytes]]:
-    """(connection, bag timestamp ns, serialized CDR bytes) in time order; read errors
-    (a corrupt chunk, a truncated file) are raised as BagError."""
-    it = reader.messages(connections=connections) if connections is not None \
-        else reader.messages()
+    """
+    Yield (connection, bag timestamp ns, serialized CDR bytes) in time order.
+
+    ``connections`` None reads every connection, an empty list none. Read errors (a
+    corrupt chunk, a truncated file) are raised as BagError.
+    """
+    if connections is not None and not connections:
+        return
+    it = reader.messages(connections=connections or ())
     while True:
         try:
             conn, ts, raw = next(it)
         except StopIteration:
             return
+        except BagError:
+            raise
         except Exception as err:
             raise BagError(f'cannot read bag {", ".join(map(str, reader.paths))!r}: '
-                           f'{_one_line(err)}') from None
+                           f'{one_line(err)}') from None
         yield conn, ts, bytes(raw)
 
 
-_CHANNELS = {'rgb8': (3, np.uint8), 'bgr8': (3, np.uint8), 'rgba8': (4, np.uint8),
-             'bgra8': (4, np.uint8), 'mono8': (1, np.uint8), '8UC1': (1, np.uint8),
-             '8UC3': (3, np.uint8), 'mono16': (1, np.uint16), '16UC1': (1, np.uint16),
-             '32FC1': (1, np.float32)}
-
-
 def image_to_array(msg) -> np.ndarray:
-    """A deserialized sensor_msgs/Image (rosbags' dataclass) as an HxWxC (HxW for one
-    channel) numpy array; honours ``step`` padding and ``is_bigendian``."""
-    if msg.encoding not in _CHANNELS:
-        raise BagError(f'unsupported image encoding {msg.encoding!r}')
-    ch, dtype = _CHANNELS[msg.encoding]
-    dt = np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<')
-    row = msg.width * ch * dt.itemsize
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if msg.step < row or data.size < msg.step * msg.height:
-        raise BagError(f'image data too short for {msg.width}x{msg.height} {msg.encoding}')
-    rows = data[:msg.step * msg.height].reshape(msg.height, msg.step)[:, :row]
-    arr = np.ascontiguousarray(rows).view(dt).astype(dtype, copy=False)
-    return arr.reshape(msg.height, msg.width) if ch == 1 else \
-        arr.reshape(msg.height, msg.width, ch)
+    """
+    Decode a deserialized sensor_msgs/Image (rosbags' dataclass) into a numpy array.
+
+    HxWxC (HxW for one channel), C-contiguous; honours ``step`` padding and
+    ``is_bigendian``. Raises :class:`BagError` on an encoding it cannot decode or a buffer
+    whose size disagrees with ``step`` and ``height``.
+    """
+    try:
+        return np.ascontiguousarray(image_from_buffer(
+            msg.height, msg.width, msg.step, msg.encoding, msg.data,
+            is_bigendian=bool(msg.is_bigendian), encodings=LAYOUTS))
+    except ValueError as exc:
+        raise BagError(str(exc)) from None
 
 
 def iter_images(path: str | Path, topic: str = '/camera/image_raw',
                 ) -> Iterator[tuple[int, object, np.ndarray]]:
-    """Offline processing: (bag timestamp ns, header, image array) for each Image on ``topic``.
+    """
+    Offline processing: (bag timestamp ns, header, image array) for each Image on ``topic``.
 
     The header (``stamp.sec``, ``stamp.nanosec``, ``frame_id``) is kept so that whatever is
-    computed from the image can carry the image's own stamp, as the live nodes do."""
+    computed from the image can carry the image's own stamp, as the live nodes do.
+    """
     with bag(path) as reader:
         conns = select_connections(reader, [topic])
         for conn, ts, raw in iter_raw(reader, conns):
             if conn.msgtype != 'sensor_msgs/msg/Image':
                 raise BagError(f'topic {conn.topic} has type {conn.msgtype}, not an Image')
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception as err:
-                raise BagError(f'cannot decode message on {conn.topic}: {_one_line(err)}') \
-                    from None
+            msg = reader.deserialize(raw, conn.msgtype)
             yield ts, msg.header, image_to_array(msg)

@@ -1,39 +1,56 @@
-"""record: write live topics into a rosbag2 (MCAP or sqlite3) with the ``rosbags`` library.
+"""
+record: write live topics into a rosbag2 (MCAP or sqlite3), as ``ros2 bag record`` does.
 
     ros2 run sphere_servo record [-o OUT] [--storage mcap|sqlite3] [--compression zstd]
                                  [--topics T ...] [--all] [--duration S] [--qos-depth N]
 
 Topics are subscribed raw (serialized CDR, never deserialized) as soon as they appear in the
-graph with a publisher; each message is stamped with its receive time (the node clock when
-``use_sim_time`` is set) and written by a writer thread, so the executor only queues bytes.
-The service ``/recorder/ready`` (std_srvs/Trigger) answers success once every topic asked for
-is subscribed and matched with each of its publishers (the launcher waits for it before the
-run begins: under load, discovering a node's topics can take seconds); otherwise its message
-names what is still missing.
-The publishers' offered QoS profiles go into metadata.yaml as ``ros2 bag`` writes them
-(rosbag2 format version 9, as Jazzy). Ctrl-C / SIGTERM / ``--duration`` close the bag
-properly: it holds everything received before the interrupt.
+graph with a publisher, with the QoS rosbag2 adapts to the publishers; each message is
+stamped with its receive time (the node clock when ``use_sim_time`` is set), its sender's
+stamp kept as MCAP ``publish_time``, and written by a writer thread
+(:class:`~sphere_servo.bag.writer.BagWriter`, Jazzy's layout and metadata), so the executor
+only queues bytes. The service ``/recorder/ready`` (std_srvs/Trigger) answers success once
+every topic asked for is subscribed and matched with each of its publishers (the launcher
+waits for it before the run begins: under load, discovering a node's topics can take
+seconds); otherwise its message names what is still missing. ``/recorder/idle`` answers
+success once nothing new has arrived for ``--idle-quiet`` s (3.5 by default, longer than Fast
+DDS's 3 s heartbeat: a supervisor that stops a run can wait for it, so that what the loaded
+middleware delivers late is in the bag before it interrupts the recorder).
+
+Losing little: the writer commits at the latest 0.5 s after a message was written (MCAP:
+the open chunk written out and fsynced; sqlite3: the transaction committed, WAL fsynced), so
+SIGKILL or a power loss loses at most the last 0.5 s; ``reindex BAG`` then rebuilds a complete
+bag (:mod:`sphere_servo.bag.repair`). Ctrl-C, SIGTERM or the end of ``--duration`` stop it
+at once: the time of the interrupt is the cut; what the recorder had already taken in, and
+what its subscriptions already hold that was sent or received before the cut, goes in the
+bag; anything later does not; the subscriptions are then destroyed and the bag closed,
+within a second.
 """
 from __future__ import annotations
 
 import argparse
+from datetime import datetime
 import importlib
+import os
 import queue
 import signal
 import sys
 import threading
 import time
-from datetime import datetime
 
 from sphere_servo.bag.bagio import BagError, check_new_output, qos_time, topic_name, typestore
+from sphere_servo.bag.writer import BagWriter
 
-# the pipeline's topics (module docstrings of nodes/arm_sim, detector, features, servo):
+# the pipeline's topics (module docstrings of ros/arm_sim, detector, features, servo):
 # enough to regenerate the features offline (``refeatures``) and to compare with what ran
 DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measurement',
-                  'features/s_n', 'camera/cmd_vel', 'camera/cmd_vel_stamped', 'servo/state',
-                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/status']
+                  'features/s_n', 'features/s_n/desired', 'camera/cmd_vel', 'servo/state',
+                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/state', '/diagnostics']
 # never recorded by --all (as ros2 bag record --all)
 EXCLUDED = {'/rosout', '/parameter_events'}
+DRAIN_IDLE = 0.05   # s: the drain ends when the subscriptions stay empty this long
+DRAIN_LIMIT = 0.5   # s: and at the latest after this
+_CUT = {'ns': None}  # wall time of the interrupt (set by the signal handler)
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -51,11 +68,18 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help='stop after this many seconds (default: until Ctrl-C)')
     p.add_argument('--qos-depth', type=int, default=100,
                    help='history depth of the recording subscriptions (default 100)')
-    return p.parse_args(argv)
+    p.add_argument('--commit-period', type=float, default=0.5,
+                   help='s: the most a crash or a power loss can lose (default 0.5)')
+    p.add_argument('--idle-quiet', type=float, default=3.5,
+                   help='s without anything new before ~/idle reports success (default 3.5)')
+    opts = p.parse_args(argv)
+    if not opts.commit_period > 0:
+        p.error('--commit-period must be > 0')
+    return opts
 
 
 def import_message(msgtype: str):
-    """The rclpy message class of ``pkg/msg/Type``."""
+    """Import the rclpy message class of ``pkg/msg/Type``."""
     try:
         from rosidl_runtime_py.utilities import get_message
         return get_message(msgtype)
@@ -66,7 +90,7 @@ def import_message(msgtype: str):
 
 
 def to_bag_qos(profile):
-    """rclpy QoSProfile (as offered by a publisher) → rosbags Qos for metadata."""
+    """Convert an rclpy QoSProfile (as offered by a publisher) to a rosbags Qos for metadata."""
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability)
 
@@ -82,8 +106,12 @@ def to_bag_qos(profile):
 
 
 def subscription_qos(offered: list, depth: int):
-    """The QoS ros2 bag adapts to its publishers: reliable / transient-local only when all
-    publishers offer it (so every publisher is matched), keep-last ``depth``."""
+    """
+    Return the QoS ros2 bag adapts to its publishers, keep-last ``depth``.
+
+    Reliable / transient-local only when all publishers offer it (so every publisher is
+    matched).
+    """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
     latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
@@ -94,24 +122,30 @@ def subscription_qos(offered: list, depth: int):
 
 
 class _Topic:
-    """A topic's connection in the bag, bound by the writer thread."""
-    __slots__ = ('name', 'conn')
+    """A topic's entry in the bag, bound by the writer thread."""
+
+    __slots__ = ('name', 'entry')
 
     def __init__(self, name: str):
-        self.name, self.conn = name, None
+        self.name, self.entry = name, None
 
 
 class BagSink:
-    """A rosbags Writer owned by one thread (sqlite3 objects must stay in the thread that
-    made them): it opens the bag, adds connections and writes messages from a FIFO queue,
-    so the executor only queues bytes; ``close()`` drains the queue and closes the bag."""
+    """
+    A :class:`BagWriter` owned by one thread (sqlite3 objects stay in the thread that made them).
 
-    def __init__(self, writer):
+    The thread opens the bag, adds topics and writes messages from a FIFO queue, committing
+    at the writer's commit period, so the executor only queues bytes; ``close()`` writes
+    what is queued and closes the bag.
+    """
+
+    def __init__(self, writer: BagWriter):
         self.writer = writer
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.counts: dict[str, int] = {}
         self.received = 0  # messages queued so far (the executor's side)
         self.fresh = 0     # of those, not a byte-identical repeat of the topic's previous one
+        self.last_fresh = time.monotonic()
         self._prev: dict[str, bytes] = {}
         self.error: BaseException | None = None
         self._opened = threading.Event()
@@ -127,59 +161,76 @@ class BagSink:
         self.queue.put(('add', handle, msgtype, offered))
         return handle
 
-    def put(self, handle: _Topic, stamp_ns: int, data: bytes) -> None:
+    def put(self, handle: _Topic, stamp_ns: int, data: bytes, sent_ns: int = 0) -> None:
         self.received += 1
         if self._prev.get(handle.name) != data:  # (an idle lockstep arm_sim re-publishes)
             self.fresh += 1
+            self.last_fresh = time.monotonic()
             self._prev[handle.name] = data
-        self.queue.put((handle, stamp_ns, data))
+        self.queue.put((handle, stamp_ns, data, sent_ns or stamp_ns))
 
     def _run(self) -> None:
+        w = self.writer
         try:
-            self.writer.open()
+            w.create()
         except BaseException as err:
             self.error = err
             self._opened.set()
             return
         self._opened.set()
         while True:
-            item = self.queue.get()
-            if item is None:
-                break
             try:
-                if item[0] == 'add':
+                item = self.queue.get(timeout=w.seconds_to_commit())
+            except queue.Empty:
+                item = ()
+            try:
+                if item is None:
+                    break
+                if item and item[0] == 'add':
                     _, handle, msgtype, offered = item
-                    handle.conn = self.writer.add_connection(
-                        handle.name, msgtype, typestore=typestore(),
-                        offered_qos_profiles=offered)
-                    continue
-                handle, stamp, data = item
-                if handle.conn is not None:
-                    self.writer.write(handle.conn, stamp, data)
-                    self.counts[handle.name] += 1
+                    handle.entry = w.add_topic(handle.name, msgtype, offered,
+                                               typestore=typestore())
+                elif item:
+                    handle, stamp, data, sent = item
+                    if handle.entry is not None:
+                        w.write(handle.entry, stamp, data, sent)
+                        self.counts[handle.name] += 1
+                if w.commit_due():
+                    w.commit()
             except Exception as err:  # keep draining; reported at exit
                 self.error = err
         try:
-            self.writer.close()
+            w.close()
         except Exception as err:
             self.error = err
+            w.abort()
 
     def close(self) -> None:
         self.queue.put(None)
         self.thread.join()
 
 
-def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, depth: int):
+def _take(sub):
+    """Take one message waiting in a subscription's queue: (bytes, info) or None."""
+    with sub.handle:
+        return sub.handle.take_message(sub.msg_type, sub.raw)
+
+
+def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, depth: int,
+                  idle_quiet: float = 3.5):
     from rclpy.node import Node
 
     class Recorder(Node):
+
         def __init__(self):
             super().__init__('recorder')
             self.sink = sink
             self.wanted = {topic_name(t) for t in (topics or [])}
             self.all_topics = all_topics
             self.subs: dict[str, object] = {}
+            self.callbacks: dict[str, object] = {}
             self.skipped: set[str] = set()
+            self.late = 0  # messages the drain found that came after the cut
             self.sim_time = self.get_parameter('use_sim_time').value
             self.clock_ = self.get_clock()
             self.discover()
@@ -189,11 +240,16 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
             self.timer = self.create_timer(0.1, self.discover)
             from std_srvs.srv import Trigger
             self.create_service(Trigger, '~/ready', self._srv_ready)
+            self.create_service(Trigger, '~/idle', self._srv_idle)
+            self.idle_quiet = idle_quiet
 
         def missing(self) -> list[str]:
-            """Topics not yet recorded from every publisher the graph shows: a wanted topic
-            not subscribed yet, or a subscription matched with fewer publishers than its
-            topic has."""
+            """
+            Topics not yet recorded from every publisher the graph shows.
+
+            A wanted topic not subscribed yet, or a subscription matched with fewer
+            publishers than its topic has.
+            """
             out = sorted(self.wanted - set(self.subs))
             for name, sub in sorted(self.subs.items()):
                 if sub.get_publisher_count() < self.count_publishers(name):
@@ -205,6 +261,12 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
             response.success = not left
             response.message = (f'recording {len(self.subs)} topics' if not left
                                 else f'waiting for {", ".join(left)}')
+            return response
+
+        def _srv_idle(self, request, response):
+            quiet = time.monotonic() - self.sink.last_fresh
+            response.success = quiet >= self.idle_quiet
+            response.message = f'nothing new for {quiet:.1f} s; {self.sink.received} received'
             return response
 
         def discover(self) -> None:
@@ -241,95 +303,139 @@ def make_recorder(sink: BagSink, topics: list[str] | None, all_topics: bool, dep
                 now = self.clock_.now
 
                 def cb(data, info, conn=conn):
-                    put(conn, now().nanoseconds, data)
+                    put(conn, now().nanoseconds, data, info.get('source_timestamp', 0))
             else:
                 def cb(data, info, conn=conn):
-                    put(conn, info['received_timestamp'] or time.time_ns(), data)
+                    put(conn, info.get('received_timestamp') or time.time_ns(), data,
+                        info.get('source_timestamp', 0))
+            self.callbacks[name] = cb
             self.subs[name] = self.create_subscription(
                 msg_cls, name, cb, subscription_qos(offered, depth), raw=True)
             print(f'record: subscribed to {name} [{msgtype}]', flush=True)
+
+        def stop(self, cut_ns: int) -> int:
+            """
+            Stop recording at wall time ``cut_ns``; return how many messages were drained.
+
+            Takes what the subscriptions already hold that was sent or received before the
+            cut (a subscription is done at its first later message, all of them once none
+            has had anything for DRAIN_IDLE s, DRAIN_LIMIT s at most), then destroys them.
+            """
+            self.destroy_timer(self.timer)
+            left = dict(self.subs)
+            taken = 0
+            end = time.monotonic() + DRAIN_LIMIT
+            idle_since = time.monotonic()
+            while left and time.monotonic() < end:
+                got = False
+                for name, sub in list(left.items()):
+                    while True:
+                        item = _take(sub)
+                        if item is None:
+                            break
+                        data, info = item
+                        stamps = [t for t in (info.get('received_timestamp'),
+                                              info.get('source_timestamp')) if t]
+                        if stamps and min(stamps) > cut_ns:
+                            self.late += 1
+                            del left[name]
+                            break
+                        self.callbacks[name](data, info)
+                        taken += 1
+                        got = True
+                if got:
+                    idle_since = time.monotonic()
+                elif time.monotonic() - idle_since >= DRAIN_IDLE:
+                    break
+                else:
+                    time.sleep(0.002)
+            for sub in self.subs.values():
+                self.destroy_subscription(sub)
+            self.subs.clear()
+            return taken
 
     return Recorder()
 
 
 def _interrupt(signum, frame):
-    raise KeyboardInterrupt
+    """Note the cut; the spin loop ends at its next turn (callbacks are never cut short)."""
+    if _CUT['ns'] is None:
+        _CUT['ns'] = time.time_ns()
 
 
-def drain(executor, sink: BagSink, quiet: float = 3.5, limit: float = 8.0) -> None:
-    """Take what is still on its way before closing the bag. A recorder sharing two cores
-    with four busy nodes gets the small topics (camera_info, joint_states) of a fast
-    lockstep run in late bursts, up to ~3 s behind their images (Fast DDS's reliable
-    repair, at its 3 s heartbeat, of what the loaded localhost sockets dropped): stopping at
-    once lost the run's last seconds on them. Spins until no new message (repeats of a
-    topic's previous one do not count) has arrived for ``quiet`` s — longer than one
-    heartbeat — and ``limit`` s at most (a live camera keeps sending; the launcher's
-    SIGKILL comes after 10 s)."""
-    end = time.monotonic() + limit
-    last, idle = sink.fresh, time.monotonic()
-    while time.monotonic() < end and time.monotonic() - idle < quiet:
-        executor.spin_once(timeout_sec=0.02)
-        if sink.fresh != last:
-            last, idle = sink.fresh, time.monotonic()
+def _watch_signals() -> None:
+    """
+    Note the time of a signal as it is delivered.
+
+    Python runs ``_interrupt`` only once the main thread is back from rclpy's wait, up to a
+    spin timeout later; the wake-up fd is written at delivery, and this thread reads it.
+    """
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    signal.set_wakeup_fd(w)
+
+    def run():
+        while os.read(r, 64):
+            if _CUT['ns'] is None:
+                _CUT['ns'] = time.time_ns()
+    threading.Thread(target=run, name='signal-watch', daemon=True).start()
 
 
 def main(args=None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.utilities import remove_ros_args
-    from rosbags.rosbag2 import (CompressionFormat, CompressionMode, StoragePlugin, Writer,
-                                 WriterError)
 
     argv = remove_ros_args(args=sys.argv if args is None else args)[1:]
     opts = parse_args(argv)
     out = opts.output or datetime.now().strftime('rosbag2_%Y_%m_%d-%H_%M_%S')
     try:
         path = check_new_output(out)
-        writer = Writer(path, version=Writer.VERSION_LATEST,
-                        storage_plugin=StoragePlugin[opts.storage.upper()])
-        if opts.compression == 'zstd':
-            mode = CompressionMode.STORAGE if opts.storage == 'mcap' else CompressionMode.MESSAGE
-            writer.set_compression(mode, CompressionFormat.ZSTD)
-        sink = BagSink(writer)
-    except (BagError, WriterError, OSError) as err:
+        sink = BagSink(BagWriter(path, opts.storage, opts.compression,
+                                 commit_period=opts.commit_period))
+    except (BagError, OSError) as err:
         print(f'record: error: {err}', file=sys.stderr)
         return 1
     topics = None if opts.all and opts.topics is None else (opts.topics or DEFAULT_TOPICS)
 
-    # rclpy's own handler would shut the context down on Ctrl-C, and then nothing could be
-    # drained: Ctrl-C and SIGTERM raise KeyboardInterrupt instead (as in nodes/params.run)
+    # rclpy's own handler would shut the context down on Ctrl-C, and then the subscriptions'
+    # queues could not be drained: Ctrl-C and SIGTERM note the time of the cut instead
     from rclpy.signals import SignalHandlerOptions
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
+    _watch_signals()
     node = None
     started = time.monotonic()
+    drained = 0
     try:
-        node = make_recorder(sink, topics, opts.all, opts.qos_depth)
+        node = make_recorder(sink, topics, opts.all, opts.qos_depth, opts.idle_quiet)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         print(f'record: recording to {path} ({opts.storage})', flush=True)
         deadline = None if opts.duration is None else time.monotonic() + opts.duration
-        while rclpy.ok() and (deadline is None or time.monotonic() < deadline):
-            executor.spin_once(timeout_sec=0.1)
+        while rclpy.ok() and _CUT['ns'] is None and \
+                (deadline is None or time.monotonic() < deadline):
+            executor.spin_once(timeout_sec=0.05)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        # a second Ctrl-C must not interrupt closing the bag
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        cut = _CUT['ns'] or time.time_ns()
+        stopping = time.monotonic()
         if node is not None:
             if rclpy.ok():
                 try:
-                    drain(executor, sink)
+                    drained = node.stop(cut)
                 except Exception as err:  # closing the bag matters more
                     print(f'record: warning: could not drain the queues: {err}',
                           file=sys.stderr)
             node.destroy_node()
         rclpy.try_shutdown()
         sink.close()
-    elapsed = time.monotonic() - started
     total = sum(sink.counts.values())
-    print(f'record: wrote {total} messages in {elapsed:.1f} s to {path}')
+    print(f'record: wrote {total} messages in {time.monotonic() - started:.1f} s to {path}'
+          f' (stopped in {time.monotonic() - stopping:.2f} s: {drained} messages taken from '
+          f'the queues, {node.late if node else 0} later than the interrupt left out)')
     for name, n in sorted(sink.counts.items()):
         print(f'  {name}: {n}')
     if sink.error is not None:

@@ -1,13 +1,22 @@
-"""replay: republish a rosbag2 (MCAP or sqlite3, ours or one by ``ros2 bag record``).
+"""
+replay: republish a rosbag2 (MCAP or sqlite3, ours or one by ``ros2 bag record``).
 
     ros2 run sphere_servo replay BAG [--topics T ...] [--rate R | --max-rate] [--loop]
                                  [--clock [HZ]] [--remap OLD:=NEW ...] [--delay S]
                                  [--wait-for-subscribers [S]]
 
-Messages are republished as their serialized bytes (never deserialized), with the bag's
-timing scaled by ``--rate``, on publishers with the QoS the recording publishers offered.
-``--clock`` publishes ``/clock`` from bag time (at HZ, default 40, and before each message),
-so nodes with ``use_sim_time`` follow the bag.
+``BAG`` is a bag directory (with or without ``metadata.yaml``) or a bare ``.mcap`` /
+``.db3`` file; every rosbag2 of Jazzy or older is read (:mod:`sphere_servo.bag.reader`:
+topics matched by name as rosbag2 does, split bags, older metadata versions). Topics are
+selected as stored or by their fully qualified name (``--topics AAA`` and ``--topics /AAA``
+both select a topic stored as ``AAA``). Messages are republished as their serialized bytes
+(never deserialized), with the bag's timing scaled by ``--rate``, on publishers with the QoS
+the recording publishers offered (adapted as ``ros2 bag play`` does). A topic whose message
+type is not installed is skipped with a warning naming it, as ``ros2 bag play`` does, unless
+``--topics`` asks for it: then replay stops with an error. Before playing, replay says what
+it will play; a selection that plays nothing is an error (exit 1). ``--clock`` publishes
+``/clock`` from bag time (at HZ, default 40, and before each message), so nodes with
+``use_sim_time`` follow the bag.
 """
 from __future__ import annotations
 
@@ -15,13 +24,14 @@ import argparse
 import sys
 import time
 
-from sphere_servo.bag.bagio import BagError, iter_raw, open_bag, select_connections, \
-    topic_name
+from sphere_servo.bag.bagio import (BagError, format_summary, iter_raw, open_bag, select,
+                                    summary, topic_name)
+from sphere_servo.bag.metadata import INFINITE
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog='replay', description=__doc__.split('\n\n')[0])
-    p.add_argument('bag', help='rosbag2 directory (with metadata.yaml)')
+    p.add_argument('bag', help='rosbag2 directory, or a bare .mcap / .db3 file')
     p.add_argument('--topics', nargs='+', default=None, metavar='TOPIC',
                    help='topics to replay (default: all)')
     g = p.add_mutually_exclusive_group()
@@ -45,8 +55,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def split_ros_args(args: list[str]) -> tuple[list[str], list[str]]:
-    """(our arguments, the ``--ros-args ... [--]`` sections). Unlike ``remove_ros_args`` this
-    keeps ``OLD:=NEW`` words, which rcl would take for (deprecated) global remap rules."""
+    """
+    Split ``args`` into (our arguments, the ``--ros-args ... [--]`` sections).
+
+    Unlike ``remove_ros_args`` this keeps ``OLD:=NEW`` words, which rcl would take for
+    (deprecated) global remap rules.
+    """
     ours, ros = [], []
     it = iter(args)
     for a in it:
@@ -74,21 +88,50 @@ def parse_remaps(remaps: list[str]) -> dict[str, str]:
     return out
 
 
+def _same_offer(a, b) -> bool:
+    """Whether two offered profiles are the same where it matters for matching."""
+    return (a.reliability, a.durability, a.deadline, a.liveliness,
+            a.liveliness_lease_duration) == (b.reliability, b.durability, b.deadline,
+                                             b.liveliness, b.liveliness_lease_duration)
+
+
 def publisher_qos(conn):
-    """The QoS of the recording's first publisher (as ros2 bag play), keep-last ≥ 10."""
+    """
+    Return the QoS to offer on a topic: the recorded publishers' one, keep-last ≥ 100.
+
+    As rosbag2's ``adapt_offer_to_recorded_offers``: the first recorded profile when all
+    offered the same (history and lifespan aside), else reliable / volatile. Finite
+    deadline, lifespan and liveliness lease are offered again; infinite ones (however the
+    bag spells them) stay the default.
+    """
+    from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     offered = getattr(conn.ext, 'offered_qos_profiles', None) or []
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.VOLATILE)
-    if offered:
+    if offered and all(_same_offer(o, offered[0]) for o in offered):
         o = offered[0]
         if o.reliability.name == 'BEST_EFFORT':
             qos.reliability = ReliabilityPolicy.BEST_EFFORT
         if o.durability.name == 'TRANSIENT_LOCAL':
             qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
         qos.depth = max(100, o.depth)
+        for key in ('deadline', 'lifespan', 'liveliness_lease_duration'):
+            t = getattr(o, key)
+            if t != INFINITE:
+                setattr(qos, key, Duration(seconds=t.sec, nanoseconds=t.nsec))
     return qos
+
+
+def unplayable(conn) -> str | None:
+    """Return why a topic cannot be published here (its message type is not installed)."""
+    from sphere_servo.bag.record import import_message
+    try:
+        import_message(conn.msgtype)
+    except (ImportError, AttributeError, ValueError) as err:
+        return f'its message type is not installed ({type(err).__name__}: {err})'
+    return None
 
 
 class Player:
@@ -103,16 +146,12 @@ class Player:
         self.pubs = {}
         self.counts: dict[str, int] = {}
         for c in conns:
-            name = remaps.get(c.topic, c.topic)
-            try:
-                cls = import_message(c.msgtype)
-            except (ImportError, AttributeError, ValueError):
-                raise BagError(f'cannot import message type {c.msgtype} of {c.topic}') \
-                    from None
+            name = remaps.get(topic_name(c.topic), c.topic)
             if name not in self.pubs:
-                self.pubs[name] = node.create_publisher(cls, name, publisher_qos(c))
+                self.pubs[name] = node.create_publisher(import_message(c.msgtype), name,
+                                                        publisher_qos(c))
                 self.counts[name] = 0
-        self.topic_of = {c.id: remaps.get(c.topic, c.topic) for c in conns}
+        self.topic_of = {c.id: remaps.get(topic_name(c.topic), c.topic) for c in conns}
         self.Clock = Clock
         self.clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) \
             if opts.clock else None
@@ -162,8 +201,11 @@ class Player:
         return sent
 
     def flush(self, timeout: float = 3.0) -> None:
-        """Wait until reliable subscribers acknowledged what was published, so the last
-        messages are not lost when the process exits right after publishing them."""
+        """
+        Wait until reliable subscribers acknowledged what was published.
+
+        Then the last messages are not lost when the process exits right after publishing.
+        """
         from rclpy.duration import Duration
         deadline = time.monotonic() + timeout
         for p in [*self.pubs.values(), self.clock_pub]:
@@ -191,6 +233,21 @@ def main(args=None) -> int:
     except BagError as err:
         print(f'replay: error: {err}', file=sys.stderr)
         return 1
+    try:
+        sel = select(reader, opts.topics, unplayable)
+        info = summary(reader, opts.topics, unplayable)
+        if not sel.count:
+            raise BagError(f'nothing to play: the selection ({len(sel.connections)} topics, '
+                           f'{len(sel.skipped)} skipped) holds no message')
+    except BagError as err:
+        reader.close()
+        print(f'replay: error: {err}', file=sys.stderr)
+        return 1
+    for w in reader.warnings:
+        print(f'replay: warning: {w}', file=sys.stderr, flush=True)
+    for s in sel.skipped:
+        print(f'replay: warning: skipping {s.topic} [{s.msgtype}], {s.count} messages: '
+              f'{s.reason}', file=sys.stderr, flush=True)
 
     rclpy.init(args=full[:1] + ros_args)
     node = None
@@ -198,16 +255,16 @@ def main(args=None) -> int:
     code = 0
     started = time.monotonic()
     try:
-        conns = select_connections(reader, opts.topics)
         node = rclpy.create_node('replay')
-        player = Player(node, reader, conns, opts, remaps)
+        player = Player(node, reader, sel.connections, opts, remaps)
         if opts.wait_for_subscribers is not None and \
                 not player.wait_for_subscribers(opts.wait_for_subscribers):
             print('replay: warning: not every topic has a subscriber; playing anyway',
                   file=sys.stderr, flush=True)
         if opts.delay > 0:
             time.sleep(opts.delay)
-        print(f'replay: playing {opts.bag} ({len(conns)} topics)', flush=True)
+        print(f'replay: playing {opts.bag}: {sel.count} messages on {len(sel.connections)} '
+              f'topics\n{format_summary(info)}', flush=True)
         started = time.monotonic()
         while True:
             sent = player.play_once()

@@ -1,4 +1,5 @@
-"""Pinhole camera model (no ROS).
+"""
+Pinhole camera model (no ROS).
 
 Pixel ``(u, v)`` ↔ normalized image point ``x̄ = (x, y, 1) = K⁻¹ (u, v, 1)`` (DESIGN.md §1),
 with ``K = [[px, 0, u0], [0, py, v0], [0, 0, 1]]``. Optional plumb_bob distortion
@@ -10,17 +11,21 @@ The controller may be given *wrong* intrinsics while the renderer keeps the true
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from functools import cached_property
+import math
 
 import numpy as np
 
+from sphere_servo.core.central import (CameraError, CentralCamera, det2, first_fold, Lifted,
+                                       odd_poly, radtan, undistort_radtan)
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2
-
+from sphere_servo.core.validation import Bound, Violation
 
 
 @dataclass(frozen=True)
-class CameraIntrinsics:
+class CameraIntrinsics(CentralCamera):
     """Intrinsics of a pinhole camera; pixels, with (0, 0) the centre of the top-left pixel."""
 
     px: float = 600.0
@@ -32,15 +37,12 @@ class CameraIntrinsics:
     dist: tuple = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __post_init__(self):
-        vals = [self.px, self.py, self.u0, self.v0, *self.dist]
-        if not all(np.isfinite(v) for v in vals):
-            raise ValueError(f'camera intrinsics must be finite, got {self}')
-        if self.px <= 0 or self.py <= 0:
-            raise ValueError(f'focal lengths must be > 0, got px={self.px}, py={self.py}')
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f'image size must be > 0, got {self.width}x{self.height}')
+        """Refuse impossible intrinsics (:meth:`CentralCamera._check_intrinsics`)."""
+        self._check_intrinsics(dict(zip(('k1', 'k2', 't1', 't2', 'k3'), self.dist)))
         if len(self.dist) != 5:
-            raise ValueError(f'plumb_bob distortion needs 5 coefficients, got {len(self.dist)}')
+            raise CameraError(Violation('plumb_bob distortion d', list(self.dist), Bound.SHAPE,
+                                        'plumb_bob distortion needs 5 coefficients'))
+        self._check_principal_point()
 
     @property
     def K(self) -> np.ndarray:
@@ -58,16 +60,9 @@ class CameraIntrinsics:
     def has_distortion(self) -> bool:
         return any(abs(d) > 0 for d in self.dist)
 
-    def with_error(self, px: float = 0.0, py: float = 0.0, u0: float = 0.0,
-                   v0: float = 0.0) -> 'CameraIntrinsics':
-        """Intrinsics off by the given *relative* errors, e.g. ``px=0.35`` for +35 % px."""
-        return replace(self, px=self.px * (1 + px), py=self.py * (1 + py),
-                       u0=self.u0 * (1 + u0), v0=self.v0 * (1 + v0))
-
     # --- projections --------------------------------------------------------------------
     def pixel_to_normalized(self, uv: Points2) -> Points2:
-        """(N, 2) pixels → (N, 2) normalized ``(x, y)`` (undistorted if the model has
-        distortion)."""
+        """(N, 2) pixels → (N, 2) normalized ``(x, y)`` (undistorted if the model has it)."""
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         xy = np.column_stack([(uv[:, 0] - self.u0) / self.px, (uv[:, 1] - self.v0) / self.py])
         return self.undistort(xy) if self.has_distortion else xy
@@ -80,11 +75,16 @@ class CameraIntrinsics:
         return np.column_stack([self.px * xy[:, 0] + self.u0, self.py * xy[:, 1] + self.v0])
 
     def project(self, cP: np.ndarray) -> Points2:
-        """(N, 3) points in the camera optical frame → (N, 2) pixels. Points with z ≤ 0 are
-        behind the camera and raise :class:`GeometryError`."""
+        """
+        (N, 3) points in the camera optical frame → (N, 2) pixels.
+
+        Points with z ≤ 0 are behind the camera and raise :class:`GeometryError`.
+        """
         cP = np.asarray(cP, dtype=float).reshape(-1, 3)
         if np.any(cP[:, 2] <= 1e-12):
             raise GeometryError('cannot project a point at or behind the camera centre')
+        if self.dist != self._NO_DISTORTION:  # refuse a ray beyond the distortion's fold
+            self._refuse_outside(cP, self.valid(cP))
         return self.normalized_to_pixel(cP[:, :2] / cP[:, 2:3])
 
     def in_image(self, uv: Points2, margin: float = 0.0) -> np.ndarray:
@@ -137,3 +137,56 @@ class CameraIntrinsics:
             dist = dist + (0.0,) * (5 - len(dist))
         return cls(px=k[0], py=k[4], u0=k[2], v0=k[5], width=int(width), height=int(height),
                    dist=dist[:5])
+
+    # --- the central-camera interface (core/central.py): lift, project, Jacobians, field --
+    _NO_DISTORTION = (0.0,) * 5
+
+    @cached_property
+    def _fold(self) -> float:
+        """Return the undistorted radius where plumb_bob's radial part stops increasing."""
+        k1, k2, _, _, k3 = self.dist
+        return first_fold((k1, k2, k3))
+
+    @property
+    def _has_tangential(self) -> bool:
+        return self.dist[2] != 0.0 or self.dist[3] != 0.0
+
+    @property
+    def max_angle(self) -> float:
+        """Return the half-angle of the valid field (rad): 90°, less if the distortion folds."""
+        return math.atan(self._fold)
+
+    def _radial_limit(self) -> tuple[float, bool]:
+        if math.isinf(self._fold):
+            return math.inf, False
+        k1, k2, _, _, k3 = self.dist
+        return float(odd_poly((k1, k2, k3), np.array([self._fold]))[0][0]), True
+
+    def _distort_rays(self, P: np.ndarray, jacobian: bool):
+        """Distort ``x̄ = (X/Z, Y/Z)`` by plumb_bob; valid for ``Z > 0`` inside the fold."""
+        Z = P[:, 2]
+        ok = Z > 1e-12 * np.sqrt(np.einsum('ij,ij->i', P, P))
+        iz = 1.0 / np.where(ok, Z, 1.0)
+        m = P[:, :2] * iz[:, None]
+        if self.has_distortion:
+            md, D = radtan(m, *self.dist)
+            ok &= (np.einsum('ij,ij->i', m, m) < self._fold ** 2) & (det2(D) > 0)
+        else:
+            md, D = m, None
+        if not jacobian:
+            return md, ok, None
+        J = np.zeros((len(P), 2, 3))                 # ∂x̄/∂P
+        J[:, 0, 0] = J[:, 1, 1] = iz
+        J[:, :, 2] = -m * iz[:, None]
+        return md, ok, (J if D is None else D @ J)
+
+    def _undistort(self, md: np.ndarray) -> Lifted:
+        if self.has_distortion:
+            m, ok = undistort_radtan(md, self.dist, self._fold)
+        else:
+            m, ok = md, np.isfinite(md).all(axis=1)
+        q = np.empty((len(m), 3))
+        q[:, :2] = m
+        q[:, 2] = 1.0
+        q /= np.sqrt(np.einsum('ij,ij->i', q, q))[:, None]
+        return Lifted(q, ok)

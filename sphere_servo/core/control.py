@@ -1,4 +1,5 @@
-"""Control law (no ROS). DESIGN.md §4, paper eq. (17).
+"""
+Control law (no ROS). DESIGN.md §4, paper eq. (17).
 
 ``v_c = −λ L̂⁺ (s − s*)``: ``v_c = (v, ω)`` (6,) is the camera twist in the current camera
 frame (m/s, rad/s); ``L̂`` is the interaction matrix with the estimated radius ``r̂``,
@@ -13,19 +14,22 @@ Convergence: ``‖s − s*‖₂ < tol``.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
 from sphere_servo.core import linalg
-from sphere_servo.core.features import FeatureSet, STFeatures, SnFeatures, check_radius
+from sphere_servo.core.features import check_radius, FeatureSet, SnFeatures, STFeatures
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import Observation
+from sphere_servo.core.validation import Bound, refuse
 
 INTERACTION_CHOICES = ('current', 'desired', 'mean')
 #: L(s, r̂) of the sets whose interaction matrix depends on the feature vector only
 VECTOR_INTERACTIONS = {'s_n': SnFeatures.interaction_from, 's': STFeatures.interaction_from}
+#: their feature sets, whose ``check_vector`` says what a feature vector from outside may be
+VECTOR_SETS = {'s_n': SnFeatures, 's': STFeatures}
 
 
 class ControlError(GeometryError):
@@ -34,8 +38,12 @@ class ControlError(GeometryError):
 
 @dataclass(frozen=True)
 class AdaptiveGain:
-    """ViSP's adaptive gain. ``lambda_0`` at x = 0, ``lambda_inf`` as x → ∞, ``slope_0`` =
-    dλ/dx at 0 (magnitude). Requires ``lambda_0 > lambda_inf > 0``, ``slope_0 > 0``."""
+    """
+    ViSP's adaptive gain.
+
+    ``lambda_0`` at x = 0, ``lambda_inf`` as x → ∞, ``slope_0`` = dλ/dx at 0 (magnitude).
+    Requires ``lambda_0 > lambda_inf > 0``, ``slope_0 > 0``.
+    """
 
     lambda_0: float = 4.0
     lambda_inf: float = 0.4
@@ -110,7 +118,8 @@ class _Law:
     def _twist(self, e: np.ndarray, L: np.ndarray) -> ControlOutput:
         """``−λ L⁺ e``, saturated; raises :class:`ControlError` rather than return NaN."""
         if not math.isfinite(float(e @ e)):
-            raise ControlError(f'feature error is not finite: {e}')
+            refuse(ControlError, 'feature error s − s*', e, Bound.FINITE,
+                   'finite entries with a finite norm')
         lam = self.lam(e)
         try:
             if L.shape[0] == L.shape[1]:
@@ -118,16 +127,19 @@ class _Law:
             else:
                 v_c = -lam * (np.linalg.pinv(L) @ e)
         except np.linalg.LinAlgError as exc:
-            raise ControlError(f'interaction matrix is singular: {exc}') from None
+            refuse(ControlError, 'interaction matrix L̂', f'singular ({exc})', Bound.GEOMETRY,
+                   'an invertible L̂')
         if not math.isfinite(float(v_c @ v_c)):
-            raise ControlError('control law produced a non-finite twist')
+            refuse(ControlError, 'twist −λ L̂⁺ (s − s*)', v_c, Bound.FINITE,
+                   'finite entries with a finite norm')
         v_c, sat = saturate(v_c, self.v_max, self.w_max)
         norm = math.sqrt(float(e @ e))
         return ControlOutput(v_c, e, lam, norm, norm < self.tol, sat)
 
 
 class Controller(_Law):
-    """``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
+    """
+    ``v_c = −λ L̂⁺ (s − s*)`` for a :class:`~sphere_servo.core.features.FeatureSet`.
 
     r_hat        estimated radius r̂ (m), finite and > 0 (``ValueError`` otherwise).
     gain         constant λ > 0, or an :class:`AdaptiveGain`.
@@ -142,22 +154,30 @@ class Controller(_Law):
         self._L_desired = features.interaction(features.desired_obs, self.r_hat)
 
     def L_hat(self, obs: Observation, s: np.ndarray | None = None) -> np.ndarray:
-        """``L̂`` (n×6) at current / desired / mean features (``s``: the current features,
-        if already computed)."""
+        """
+        ``L̂`` (n×6) at current / desired / mean features.
+
+        ``s``: the current features, if already computed.
+        """
         if self.interaction == 'desired':
             return self._L_desired
         return self._combine(self.features.interaction(obs, self.r_hat, s), self._L_desired)
 
     def compute(self, obs: Observation) -> ControlOutput:
-        """Twist for the current observation. Raises a ``ValueError`` subclass
+        """
+        Twist for the current observation.
+
+        Raises a ``ValueError`` subclass
         (:class:`~sphere_servo.core.measurement.MeasurementError` or :class:`ControlError`)
-        instead of ever returning a non-finite twist: the caller then sends zero velocity."""
+        instead of ever returning a non-finite twist: the caller then sends zero velocity.
+        """
         s = self.features.features(obs)
         return self._twist(s - self.features.desired, self.L_hat(obs, s))
 
 
 class VectorController(_Law):
-    """The same law from feature *vectors* alone, as the servo node receives them.
+    """
+    The same law from feature *vectors* alone, as the servo node receives them.
 
     For ``s_n`` (eq. 6) and ``s`` (eq. 16) the interaction matrix is a function of the
     feature vector only, so ``compute(s, s_star)`` needs nothing else. (``s_cc``'s ζ rows need
@@ -168,16 +188,23 @@ class VectorController(_Law):
         super().__init__(r_hat, **kw)
         try:
             self._L = VECTOR_INTERACTIONS[feature_set]
+            self._check = VECTOR_SETS[feature_set].check_vector
         except KeyError:
             raise ValueError(f'the vector law supports {tuple(VECTOR_INTERACTIONS)}, '
                              f'got {feature_set!r}') from None
         self.feature_set = feature_set
 
     def compute(self, s: np.ndarray, s_star: np.ndarray) -> ControlOutput:
-        s, s_star = np.asarray(s, dtype=float), np.asarray(s_star, dtype=float)
-        if s.shape != (6,) or s_star.shape != (6,):
-            raise ControlError(f'{self.feature_set} needs 6 features, got {s.shape} and '
-                               f'{s_star.shape}')
+        """
+        Twist for the feature vectors ``s`` (current) and ``s_star`` (desired), each (6,).
+
+        Both are checked first (the set's ``check_vector``): 6 finite numbers,
+        ``‖θu‖ ≤ π + tol`` (θu = log R), for ``s_n`` ``1 < ‖s_n,t‖ ≤ S_NT_MAX`` (‖O‖ > r),
+        for ``s`` a bounded ``s_t``; a refusal is a
+        :class:`~sphere_servo.core.features.FeatureError` naming the bound. The law then
+        raises :class:`ControlError` rather than return a non-finite twist.
+        """
+        s, s_star = self._check(s, 's'), self._check(s_star, 's*')
         L_star = self._L(s_star, self.r_hat) if self.interaction != 'current' else None
         L = self._L(s, self.r_hat) if self.interaction != 'desired' else None
         return self._twist(s - s_star, self._combine(L, L_star))

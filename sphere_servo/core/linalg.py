@@ -1,4 +1,5 @@
-"""Small dense linear algebra for the control step, without NumPy's per-call Python checks.
+"""
+Small dense linear algebra for the control step, without NumPy's per-call Python checks.
 
 ``np.linalg.eigh`` on a 3×3 conic and ``np.linalg.solve`` on a 6×6 interaction matrix spend
 more time in their Python wrappers (type checks, ``errstate`` context managers) than in

@@ -1,4 +1,5 @@
-"""Target models (no ROS): the special sphere, the CC target and the "balloon".
+"""
+Target models (no ROS): the special sphere, the CC target and the "balloon".
 
 All positions are in the target frame ``o`` (origin at the sphere centre O), in metres.
 
@@ -38,7 +39,8 @@ def mark_names(kind: str) -> tuple[str, str]:
 
 @dataclass(frozen=True)
 class Target:
-    """A marked sphere (or ellipsoid, if ``axes`` is given).
+    """
+    A marked sphere (or ellipsoid, if ``axes`` is given).
 
     kind     'special' (marks P1, P2 on the surface) or 'cc' (P1 on the surface, P3 the tip
              of a tangent vector at P1).
@@ -61,7 +63,7 @@ class Target:
 
     def __post_init__(self):
         if self.kind not in KINDS:
-            raise ValueError(f"target kind must be one of {KINDS}, got {self.kind!r}")
+            raise ValueError(f'target kind must be one of {KINDS}, got {self.kind!r}')
         if not np.isfinite(self.radius) or self.radius <= 0:
             raise ValueError(f'target radius must be a finite number > 0, got {self.radius}')
         object.__setattr__(self, 'oP1', np.asarray(self.oP1, dtype=float))
@@ -94,15 +96,19 @@ class Target:
 
 
 def special_sphere(radius: float = 0.05, **kw) -> Target:
-    """The paper's special sphere: ``OP1 = r(0, 1/2, −√3/2)``, ``OP2 = r(1/2, 0, −√3/2)``."""
+    """Build the paper's special sphere: ``OP1 = r(0, 1/2, −√3/2)``, ``OP2 = r(1/2, 0, −√3/2)``."""
     s3 = np.sqrt(3.0) / 2.0
     return Target(SPECIAL, radius, radius * np.array([0.0, 0.5, -s3]),
                   radius * np.array([0.5, 0.0, -s3]), **kw)
 
 
 def cc_target(radius: float = 0.05, stick_length: float | None = None, **kw) -> Target:
-    """CC target: P1 at the paper's position, P3 = P1 + ℓ·t with t the unit tangent at P1
-    pointing towards the paper's P2 (so ``OP1 ⟂ P1P3``); ℓ = r by default."""
+    """
+    Build a CC target: P1 at the paper's position, P3 = P1 + ℓ·t the tip of a tangent stick.
+
+    t is the unit tangent at P1 pointing towards the paper's P2 (so ``OP1 ⟂ P1P3``); ℓ = r
+    by default.
+    """
     ref = special_sphere(radius)
     ell = radius if stick_length is None else float(stick_length)
     if not np.isfinite(ell) or ell <= 0:
@@ -114,9 +120,12 @@ def cc_target(radius: float = 0.05, stick_length: float | None = None, **kw) -> 
 
 
 def balloon(axes=(0.06, 0.055, 0.045), **kw) -> Target:
-    """A non-spherical body: ellipsoid with semi-axes ``axes``, two surface marks in the
-    paper's directions (projected radially onto the ellipsoid). ``radius`` is that of the
-    sphere of equal volume."""
+    """
+    Build a non-spherical body: an ellipsoid with semi-axes ``axes`` and two surface marks.
+
+    The marks lie in the paper's directions (projected radially onto the ellipsoid).
+    ``radius`` is that of the sphere of equal volume.
+    """
     axes = np.asarray(axes, dtype=float)
     r_eq = float(np.prod(axes) ** (1.0 / 3.0))
     s3 = np.sqrt(3.0) / 2.0
@@ -127,7 +136,7 @@ def balloon(axes=(0.06, 0.055, 0.045), **kw) -> Target:
 
 
 def make_target(kind: str, radius: float = 0.05, **kw) -> Target:
-    """Factory by name: 'special', 'cc' or 'balloon'."""
+    """Build a target by name: 'special', 'cc' or 'balloon'."""
     if kind == SPECIAL:
         return special_sphere(radius, **kw)
     if kind == CC:

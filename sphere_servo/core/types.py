@@ -1,4 +1,6 @@
-"""Shape-typed ndarray aliases shared by every layer (documentation only; no runtime check).
+# noqa: A005 - imported only as sphere_servo.core.types, so it never shadows the stdlib
+"""
+Shape-typed ndarray aliases shared by every layer (documentation only; no runtime check).
 
 Frames are named in variables (``cMo``: the target frame o in the camera frame c), so the
 aliases say shapes and units, not frames.

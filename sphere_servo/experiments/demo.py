@@ -1,5 +1,7 @@
-"""``make demo``: the paper's special-sphere scenario (§IV.A.1) on the simulated UR5, over
-ROS 2 — four processes (arm_sim, detector, features, servo) started by the launcher, in
+"""
+``make demo``: the paper's special-sphere scenario (§IV.A.1) on the simulated UR5, over ROS 2.
+
+Four processes (arm_sim, detector, features, servo) started by the launcher, in
 lockstep. The arm shows the desired pose, its image is taught, the arm jumps to the start
 pose and the servo brings it back with ``s_n``, with only the image in the loop.
 
@@ -14,21 +16,22 @@ CC target with s_cc, s_n and s.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.core.features import make_feature_set
-from sphere_servo.sim.loop import run_loop
-from sphere_servo.core.measurement import observe
-from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
-from sphere_servo.core.targets import cc_target, special_sphere
-from sphere_servo.ros.vectors import FEATURE_NAMES
 from sphere_servo.bringup import launcher
-from sphere_servo.sim.plots import Trajectory, fig3, fig4
+from sphere_servo.core.features import make_feature_set
+from sphere_servo.core.measurement import observe
+from sphere_servo.core.targets import cc_target, special_sphere
+from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
+from sphere_servo.pipeline.config import ConfigError, scenario
+from sphere_servo.ros.vectors import FEATURE_NAMES
+from sphere_servo.sim.loop import run_loop
+from sphere_servo.sim.plots import fig3, fig4, Trajectory
 
 
 def progress(res, every: int = 25) -> None:
@@ -64,8 +67,10 @@ def headless(out: Path, gain: float, dt: float) -> tuple[bool, list]:
 
 
 def run_window(sup) -> dict:
-    """What the figures show of a ROS run, from the launcher's supervisor's histories: the
-    servo run from the first image the enabled servo answered at the start pose
+    """
+    Select what the figures show of a ROS run, from the launcher's supervisor's histories.
+
+    That is the servo run from the first image the enabled servo answered at the start pose
     (``sup.t_enabled``, else the first image there, ``sup.t_start``) on. The teach sequence
     before it (the arm at the desired pose measured against an earlier teach, the jump to the
     start, the frames until the servo is enabled) is not part of the run. Camera positions
@@ -77,7 +82,8 @@ def run_window(sup) -> dict:
     ``b`` (k, 3) and ``marks`` {name: (k, 3)} unit rays of the detected sphere centre and
     marks (camera frame), and ``iterations``: the servo's count of its iterations up to the
     first it called converged (None if it did not; the run goes on after that while the
-    launcher stops the nodes, so the histories' length depends on timing, not this count)."""
+    launcher stops the nodes, so the histories' length depends on timing, not this count).
+    """
     t_start = sup.t_enabled if sup.t_enabled is not None else sup.t_start
 
     def run(history):  # by stamp: under load some messages are delivered late
@@ -122,7 +128,8 @@ def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Pa
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--out', default='runs', help='parent folder of the run folder')
-    ap.add_argument('--config', default='special_sphere', help='launcher config')
+    ap.add_argument('--config', '--scenario', dest='scenario', default='special_sphere',
+                    help='launcher scenario (config/scenarios/<name>.yaml)')
     ap.add_argument('--timeout', type=float, default=None, help='wall seconds')
     ap.add_argument('--no-record', action='store_true', help='do not record a rosbag2')
     ap.add_argument('--headless', action='store_true', help='kinematic loop, no ROS')
@@ -135,17 +142,17 @@ def main(argv=None) -> int:
         ok, files = headless(out, args.gain, args.dt)
     else:
         try:
-            config = launcher.load_config(launcher.find_config(args.config))
-        except launcher.LaunchError as exc:
+            sc = scenario(args.scenario)
+        except ConfigError as exc:
             print(f'demo: {exc}', file=sys.stderr)
-            return 2
-        print(f'demo: {args.config} over ROS 2 (arm_sim, detector, features, servo)')
+            return launcher.ExitCode.BAD_CONFIG
+        print(f'demo: {args.scenario} over ROS 2 ({", ".join(sc.nodes)})')
         bag = None if args.no_record else str(out / 'bag')
-        code, sup, _ = launcher.run(config, until_converged=True, timeout=args.timeout,
+        code, sup, _ = launcher.run(sc, until_converged=True, timeout=args.timeout,
                                     record=bag, collect=True)
-        ok = code == 0
-        fset = launcher.node_params(config, 'servo').get('feature_set', 's_n')
-        files = ros_figures(sup, out, f'{args.config}: {fset} over ROS 2', fset)
+        ok = code == launcher.ExitCode.OK
+        fset = sc.node_params('servo').get('feature_set', 's_n')
+        files = ros_figures(sup, out, f'{args.scenario}: {fset} over ROS 2', fset)
         if bag and Path(bag).exists():
             files.append(Path(bag))
     print('\nwrote:')

@@ -1,10 +1,11 @@
-"""Classical point-based IBVS on three image points — the sphere centre's image and the two
-marks — as the baseline the paper's sets are compared with in the Monte Carlo study (no ROS).
+"""
+Classical point-based IBVS on three image points, the baseline of the Monte Carlo study.
 
-Features ``s = (x_O, y_O, x_1, y_1, x_2, y_2)``: normalized image coordinates of the sphere
-centre O (``x_O = b_x/b_z``; the projection of the 3D point O, not the ellipse's centre), of
-P1 and of the second mark (P2 on a special sphere, the CC tip P3). Interaction matrix of a
-point at depth Z (Chaumette & Hutchinson 2006):
+The points are the sphere centre's image and the two marks (no ROS). Features
+``s = (x_O, y_O, x_1, y_1, x_2, y_2)``: normalized image coordinates of the sphere centre O
+(``x_O = b_x/b_z``; the projection of the 3D point O, not the ellipse's centre), of P1 and
+of the second mark (P2 on a special sphere, the CC tip P3). Interaction matrix of a point
+at depth Z (Chaumette & Hutchinson 2006):
 
     L_x = [[−1/Z, 0, x/Z, xy, −(1 + x²), y], [0, −1/Z, y/Z, 1 + y², −xy, −x]]
 
@@ -12,15 +13,14 @@ with the depths taken from the sphere measurement and the estimated radius r̂ (
 ``Z_O = (r̂/r_δ) b_z``, ``Z_i = r̂ (‖P_i‖/r) q_i,z``. The matrix is 6×6 (three points fix the
 pose up to the classical 4-solution ambiguity).
 
-:func:`register` adds the set to the core's registry under ``'ibvs'`` so the headless loop
-``run_loop(..., feature_set='ibvs')`` can run it.
+The loop takes the class itself: ``run_loop(..., feature_set=IbvsFeatures)``; importing
+this module registers nothing.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from sphere_servo.core import features as _features
-from sphere_servo.core.features import FeatureSet, check_radius
+from sphere_servo.core.features import check_radius, FeatureSet
 from sphere_servo.core.measurement import MeasurementError, Observation, P3_over_r, P_over_r
 from sphere_servo.core.targets import CC
 
@@ -75,11 +75,3 @@ class IbvsFeatures(FeatureSet):
         if np.any(Z <= 0):
             raise MeasurementError(f'non-positive depth from the image: {Z}')
         return np.vstack([point_interaction(s[2 * i], s[2 * i + 1], Z[i]) for i in range(3)])
-
-
-def register() -> None:
-    """Make ``make_feature_set('ibvs', …)`` (and so ``run_loop``) know the baseline."""
-    _features.register_feature_set(NAME, IbvsFeatures)
-
-
-register()

@@ -12,11 +12,12 @@ It shows the UR5 (its example-robot-data meshes) moving through the run's record
 the desired camera (green frustum). The meshcat panel (top right, open) has play, pause,
 reset and the time slider under *Animations*; drag to orbit, scroll to zoom.
 
-The geometry is :class:`sphere_servo.sim.scene.Scene`'s, for the arm of the launcher config
-the run used (``--config``, default ``special_sphere``: hand-eye transform, target pose and
-target); the page is refused when the bag's ground truth ``ground_truth/camera_pose`` and
-the config's arm disagree (another config recorded it). The desired camera is the taught
-image's ground-truth pose (``runbag``), else the config's ``desired_cMo``.
+The geometry is :class:`sphere_servo.sim.scene.Scene`'s, for the ``arm_sim`` parameters of
+the scenario the run used (``--config``, default ``special_sphere``: hand-eye transform,
+target pose and target; :func:`sphere_servo.bag.run.run_scene`); the page is refused when
+the bag's ground truth ``ground_truth/camera_pose`` and that arm disagree (another scene
+recorded it). The desired camera is the taught image's ground-truth pose, else the
+scenario's ``desired_cMo``.
 
 What is drawn is the scene's markers (:meth:`Scene.markers`, what RViz or Foxglove will
 show of a live run), each at ``/meshcat/<namespace>/<id>``. The page's address may carry
@@ -36,80 +37,18 @@ import warnings
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.bag import refeatures as rf
 from sphere_servo.bag.bagio import BagError
-from sphere_servo.experiments.runbag import cli_error, output_path, read_run, Run
-from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, resolve_uri, Scene,
-                                    SceneError)
+from sphere_servo.bag.offline import load_settings
+from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, read_run, Run,
+                                  run_scene)
+from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, package_dirs, PACKAGE_SCHEME,
+                                    resolve_uri, Scene, SceneError)
 
 #: the marker namespaces that move with the run (the others: target, desired_camera)
 MOVING = ('robot', 'camera')
 #: where the page's viewer camera starts, world frame (m), looking at the world origin
 VIEW_FROM = (1.0, 0.8, 0.6)
-POSE_TOL = 1e-6   # m / rad: the bag's ground truth against the config's arm
 MAX_PATH_SEGMENTS = 120
-
-
-def _flat(d: dict, prefix: str = '') -> dict:
-    """Nested YAML parameters as ROS names them: ``{'camera': {'px': 1}}`` → ``camera.px``."""
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f'{prefix}{k}.'))
-        else:
-            out[f'{prefix}{k}'] = v
-    return out
-
-
-def arm_params(config: dict | None) -> dict:
-    """Read the ``arm_sim`` parameters of a merged launcher config, validated as the node does."""
-    from sphere_servo.pipeline.config import node_params
-    from sphere_servo.ros.arm_sim import PARAMS
-    from sphere_servo.ros.params import check
-    given = _flat(node_params(config or {}, 'arm_sim'))
-    return {k: check(k, p, given.get(k, p.default)) for k, p in PARAMS.items()}
-
-
-def scene_for_run(run: Run, config: dict | None) -> Scene:
-    """
-    Build the :class:`Scene` of a run from the config it was recorded with.
-
-    Raises :class:`BagError` when the bag's ground truth disagrees with the config's arm
-    by more than :data:`POSE_TOL`, or the bag has no joint states.
-    """
-    from sphere_servo.core.camera import CameraIntrinsics
-    from sphere_servo.core.targets import make_target
-    from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy
-    p = arm_params(config)
-    kind = p['target.kind']
-    target = (make_target('balloon', axes=tuple(p['target.axes'])) if kind == 'balloon'
-              else make_target(kind, p['target.radius']))
-    arm = ArmModel(urdf_path=p['urdf_path'] or None,
-                   tool0Mc=pose_from_xyz_rpy(p['hand_eye'][:3], p['hand_eye'][3:]),
-                   wMo=pose_from_xyz_rpy(p['target_pose'][:3], p['target_pose'][3:]))
-    camera = run.camera or CameraIntrinsics(p['camera.px'], p['camera.py'], p['camera.u0'],
-                                            p['camera.v0'], p['camera.width'],
-                                            p['camera.height'])
-    if run.desired is not None and run.desired.stamp in run.oMc:
-        cdMo = run.oMc[run.desired.stamp].inverse()
-    else:
-        cdMo = pose_from_xyz_rpy(p['desired_cMo'][:3], p['desired_cMo'][3:])
-    scene = Scene(arm, target, camera, cdMo)
-    if not run.joints:
-        raise BagError(f'{run.path}: no joint_states in the bag: nothing to replay')
-    if run.joint_names and run.joint_names != arm.joint_names:
-        raise BagError(f'{run.path}: joint_states name {run.joint_names}, the UR5 model has '
-                       f'{arm.joint_names}')
-    worst = 0.0
-    for st, q in run.joints.items():
-        if st in run.oMc:
-            err = pin.log6((arm.wMo * run.oMc[st]).inverse() * scene.camera_pose(q)).vector
-            worst = max(worst, float(np.max(np.abs(err))))
-    if worst > POSE_TOL:
-        raise BagError(f'{run.path}: the recorded ground-truth camera poses and the arm of '
-                       f'this config disagree by up to {worst:.3g} (m, rad): give --config '
-                       'the run was recorded with')
-    return scene
 
 
 class Recorder:
@@ -123,25 +62,37 @@ class Recorder:
         self.commands.append(umsgpack.packb(command.lower()))
 
 
-def _mesh(path: Path, scale, rgba):
+def robot_meshes(scene: Scene) -> dict[Path, object]:
     """
-    Build the meshcat object of a mesh file: its triangles, as assimp reads the file.
+    Load the robot's visual meshes as Pinocchio loads its geometry: resolved file → BVH.
 
-    The file is loaded as Pinocchio loads its geometry (coal's mesh loader, the scale
-    applied), not handed to the browser: three.js's Collada loader in meshcat's viewer drops
-    parts of the UR5's visual DAE files (Pinocchio's own MeshcatVisualizer shows the same).
+    Pinocchio's own visual geometry model of the URDF (its loader, the scale applied). The
+    page gets their triangles, not the files: three.js's Collada loader in meshcat's viewer
+    drops parts of the UR5's visual DAE files (Pinocchio's own MeshcatVisualizer shows the
+    same).
     """
-    import coal
+    pkgs = {m.uri[len(PACKAGE_SCHEME):].partition('/')[0] for m in scene.meshes
+            if m.uri.startswith(PACKAGE_SCHEME)}
+    dirs = [str(d) for pkg in sorted(pkgs) for d in package_dirs(scene.arm.urdf_path, pkg)]
+    try:
+        geom = pin.buildGeomFromUrdf(scene.model, str(scene.arm.urdf_path),
+                                     pin.GeometryType.VISUAL, package_dirs=dirs)
+    except (RuntimeError, ValueError) as exc:
+        raise SceneError(f'cannot load the meshes of {scene.arm.urdf_path}: {exc}') from None
+    return {Path(g.meshPath).resolve(): g.geometry for g in geom.geometryObjects}
+
+
+def _mesh(spec: MarkerSpec, meshes: dict):
+    """Build the meshcat object of a mesh marker: the triangles of its file (``meshes``)."""
     import meshcat.geometry as mg
     from pinocchio.visualize.meshcat_visualizer import loadMesh
-    try:
-        bvh = coal.MeshLoader().load(str(path), np.asarray(scale, dtype=float))
-    except Exception as exc:  # noqa: BLE001 - coal raises RuntimeError or its own types
-        raise SceneError(f'cannot load mesh {path}: {exc}') from None
-    geom = loadMesh(bvh)
+    path = resolve_uri(spec.mesh_uri).resolve()
+    if path not in meshes:
+        raise SceneError(f"mesh {path} is not one of the robot's visual meshes")
+    geom = loadMesh(meshes[path])
     if not isinstance(geom, mg.TriangularMeshGeometry):
         raise SceneError(f'mesh {path} has no triangles')
-    return mg.Mesh(geom, mg.MeshPhongMaterial(color=_hex(rgba), shininess=40))
+    return mg.Mesh(geom, mg.MeshPhongMaterial(color=_hex(spec.rgba), shininess=40))
 
 
 def _hex(rgba) -> int:
@@ -149,11 +100,11 @@ def _hex(rgba) -> int:
     return (r << 16) + (g << 8) + b
 
 
-def _object(spec: MarkerSpec):
+def _object(spec: MarkerSpec, meshes: dict):
     """Build the meshcat object drawing a :class:`MarkerSpec` (in its own frame)."""
     import meshcat.geometry as mg
     if spec.kind == MarkerKind.MESH_RESOURCE:
-        return _mesh(resolve_uri(spec.mesh_uri), spec.scale, spec.rgba)
+        return _mesh(spec, meshes)
     if spec.kind == MarkerKind.SPHERE:
         return mg.Mesh(mg.Ellipsoid(np.asarray(spec.scale) / 2),
                        mg.MeshPhongMaterial(color=_hex(spec.rgba)))
@@ -187,12 +138,13 @@ def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], flo
     n = len(frames)
     step = max(1, int(np.ceil((n - 1) / MAX_PATH_SEGMENTS)))
     pieces = [(a, min(a + step, n - 1)) for a in range(0, n - 1, step)]
+    meshes = robot_meshes(scene)
     for spec in scene.markers(qs[0], mesh_uris='file'):
-        vis[f'{spec.ns}/{spec.id}'].set_object(_object(spec))
+        vis[f'{spec.ns}/{spec.id}'].set_object(_object(spec, meshes))
         vis[f'{spec.ns}/{spec.id}'].set_transform(spec.pose.homogeneous)
     for j, (a, b) in enumerate(pieces):  # the camera_path marker, drawn as it grows
         spec = next(m for m in scene.markers(qs[0], path[a:b + 1]) if m.ns == 'camera_path')
-        vis[f'{spec.ns}/{j}'].set_object(_object(spec))
+        vis[f'{spec.ns}/{j}'].set_object(_object(spec, meshes))
     anim = Animation(default_framerate=fps)
     for k, q in enumerate(qs):
         with anim.at_frame(vis, k) as fr:
@@ -281,19 +233,17 @@ def write_page(commands: list[bytes], out: Path, title: str, info: str) -> Path:
     return out
 
 
-def make_replay(run: Run, config: dict | None, out: Path) -> tuple[Path, dict]:
-    """Write the replay page of ``run``; returns its path and a few figures about it."""
+def make_replay(run: Run, scene: Scene, out: Path) -> tuple[Path, dict]:
+    """Write the replay page of ``run`` in ``scene``; return its path and a few figures."""
     import html
     t0 = time.monotonic()
-    scene = scene_for_run(run, config)
-    fps = 1.0 / (float(np.median(np.diff(run.frames))) * 1e-9) if len(run.frames) > 1 \
-        else 30.0
+    fps = run.frame_rate()
     commands, duration = build_commands(scene, run, fps)
     d = run.desired
     info = (f'<b>{html.escape(run.path.parent.name or str(run.path))}</b>: '
             f'{len(run.frames)} frames, {duration:.1f} s. Orange: camera and its frustum; '
             f'yellow: its path; green: the desired camera'
-            + (f' ({html.escape(d.how)} image)' if d else ' (config)') +
+            + (f' ({html.escape(d.how)} image)' if d else ' (scenario)') +
             '. Play / pause / time: <i>Animations</i>, top right.')
     path = write_page(commands, out, f'replay: {run.path}', info)
     return path, {'frames': len(run.frames), 'duration': duration, 'fps': fps,
@@ -305,7 +255,7 @@ def parse_args(argv):
     ap.add_argument('bag', help='rosbag2 directory of the run (runs/<timestamp>/bag)')
     ap.add_argument('-o', '--output', help='page (default: replay.html beside the bag)')
     ap.add_argument('--config', default='special_sphere',
-                    help='launcher config the run used (arm, target, feature set)')
+                    help='scenario (or params file) the run used: arm, target, feature set')
     ap.add_argument('--every-image', action='store_true',
                     help='every image of the bag, not only the servo iterations')
     return ap.parse_args(argv)
@@ -313,13 +263,12 @@ def parse_args(argv):
 
 def main(argv=None) -> int:
     opts = parse_args(list(sys.argv[1:] if argv is None else argv))
-    from sphere_servo.pipeline.config import ConfigError, find_config, load_config
+    from sphere_servo.pipeline.config import ConfigError
     try:
-        config = load_config(find_config(opts.config))
-        run = read_run(opts.bag, rf.Settings.from_config(config),
-                       every_image=opts.every_image)
+        run = read_run(opts.bag, load_settings(opts.config), every_image=opts.every_image)
+        scene = run_scene(run, load_arm_params(opts.config))
         out = output_path(opts.bag, opts.output, 'replay.html')
-        path, figs = make_replay(run, config, out)
+        path, figs = make_replay(run, scene, out)
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('replay3d', err)
     print(f'replay3d: {figs["frames"]} frames ({figs["duration"]:.1f} s at {figs["fps"]:g} '

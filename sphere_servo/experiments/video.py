@@ -5,17 +5,19 @@
                                              [--every-image] [--fps F]
     make video BAG=runs/<timestamp>/bag
 
-One frame per servo iteration (the frames of :func:`sphere_servo.experiments.runbag.read_run`:
-every image the servo answered while enabled; ``--every-image``: every image of the bag), at
-the camera's rate (``--fps`` to change it). Each frame: on the left the camera image with
+One frame per servo iteration (the frames of :func:`sphere_servo.bag.run.read_run`: every
+image the servo answered while enabled, by its recorded ``servo/state``; ``--every-image``:
+every image of the bag), at the camera's rate (``--fps`` to change it). Each frame: on the
+left the camera image with
 
 - the detection: the recorded ``detector/measurement``'s ellipse (green) and marks (yellow
   crosses) — so any bag with images and measurements works, whatever made it;
 - the goal: the desired measurement's ellipse (magenta) and marks (circles in the marks'
-  colours) — the taught image's recorded measurement (``runbag``: found as ``refeatures``
-  finds it), else the last converged image's, else none (the frame says so);
+  colours) — the recorded measurement of the image the run taught (the header of its
+  recorded ``features/<set>/desired``), else the last converged image's, else none (the
+  frame says so);
 
-and on the right the error norm ‖s − s*‖₂ of the servo's feature set (log scale), the
+and on the right the servo's error norm ‖s − s*‖₂ (its ``servo/state``; log scale), the
 twist's translation (m/s) and rotation (deg/s) in the camera frame, up to that frame.
 
 Writes H.264 (``yuv420p``, CRF 20) with the ffmpeg that ``imageio-ffmpeg`` ships, to
@@ -36,10 +38,10 @@ import time
 import cv2
 import numpy as np
 
-from sphere_servo.bag import refeatures as rf
 from sphere_servo.bag.bagio import BagError
+from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
+from sphere_servo.bag.run import cli_error, iter_frames, output_path, read_run, Run
 from sphere_servo.core.targets import make_target
-from sphere_servo.experiments.runbag import cli_error, iter_frames, output_path, read_run, Run
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
 LEGEND_H = 26  # px above the plots, for the overlay's legend
@@ -211,14 +213,6 @@ class VideoResult:
     gif: Path | None = None
 
 
-def frame_rate(run: Run) -> float:
-    """Give the camera's rate: 1 / the median step between frame stamps (30 Hz if unknown)."""
-    if len(run.frames) < 2:
-        return 30.0
-    dt = float(np.median(np.diff(run.frames))) * 1e-9
-    return 1.0 / dt if dt > 0 else 30.0
-
-
 class FrameDrawer:
     """Compose the video frames of a run (camera image with overlays | plot panel)."""
 
@@ -232,13 +226,12 @@ class FrameDrawer:
         names = ('P1', 'P3') if target_kind == 'cc' else ('P1', 'P2')
         self.mark_colors = {n: colors.get(n, colors['P2']) for n in names}
         n = len(run.frames)
-        self.err = np.array([np.linalg.norm(run.errors[st]) if st in run.errors else np.nan
-                             for st in run.frames])
+        self.err = run.series(run.error_norm, 1)[:, 0]
         self.twist = run.series(run.twists, 6)
         self.t = np.array([run.t(st) for st in run.frames])
         pw = H // 2 * 2
         self.panel = PlotPanel(self.t, self.err, self.twist, pw, H - LEGEND_H,
-                               run.feature_set or 's')
+                               run.feature_set)
         self.size = ((W + pw + 1) // 2 * 2, (H + 1) // 2 * 2)
         self.iterations = n
         d = run.desired
@@ -283,7 +276,7 @@ def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None =
     """Write the H.264 video (and the GIF if ``gif``) of ``run``; see the module docstring."""
     import imageio_ffmpeg
     t0 = time.monotonic()
-    fps = float(fps or frame_rate(run))
+    fps = float(fps or run.frame_rate())
     drawer = FrameDrawer(run, target_kind)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -333,11 +326,11 @@ def parse_args(argv):
     ap.add_argument('--gif', nargs='?', const='', default=None,
                     help='also write a GIF (default: servo.gif beside the video)')
     ap.add_argument('--config', default='special_sphere',
-                    help='launcher config the run used (target kind, feature set)')
+                    help='scenario (or params file) the run used: target kind, feature set')
     ap.add_argument('--every-image', action='store_true',
                     help='one frame per image of the bag, not per servo iteration')
     ap.add_argument('--fps', type=float, default=None, help='frame rate (default: camera)')
-    ap.add_argument('--image-topic', default=rf.IMAGE_TOPIC)
+    ap.add_argument('--image-topic', default=IMAGE_TOPIC)
     ap.add_argument('--quiet', action='store_true', help='no progress bar')
     return ap.parse_args(argv)
 
@@ -348,12 +341,12 @@ def main(argv=None) -> int:
     try:
         if opts.fps is not None and not (np.isfinite(opts.fps) and opts.fps > 0):
             raise BagError(f'--fps must be a number > 0, got {opts.fps}')
-        settings = rf.load_settings(opts.config)
+        settings = load_settings(opts.config)
         run = read_run(opts.bag, settings, opts.image_topic, opts.every_image)
         out = output_path(opts.bag, opts.output, 'servo.mp4')
         gif = None if opts.gif is None else (Path(opts.gif) if opts.gif
                                              else out.with_suffix('.gif'))
-        res = make_video(run, out, opts.fps, gif, settings.features['target_kind'],
+        res = make_video(run, out, opts.fps, gif, settings.features.target_kind,
                          progress=not opts.quiet)
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('video', err)

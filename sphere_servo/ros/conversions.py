@@ -1,4 +1,5 @@
-"""ROS message ↔ ndarray / Pinocchio conversions shared by the nodes (no cv_bridge).
+"""
+ROS message ↔ ndarray / Pinocchio conversions shared by the nodes (no cv_bridge).
 
 Direction ndarray → message only for images (the detector owns Image → ndarray with its
 validation). Everything else both ways:
@@ -7,43 +8,57 @@ validation). Everything else both ways:
 - :func:`camera_info_from_intrinsics`  :class:`CameraIntrinsics` → ``sensor_msgs/CameraInfo``
 - :func:`pose_from_se3` / :func:`se3_from_pose`   ``pin.SE3`` ↔ ``geometry_msgs/Pose``
 - :func:`twist_to_array` / :func:`twist_from_array`  ``geometry_msgs/Twist`` ↔ (6,) ``(v, ω)``
-- :func:`stamp_from_seconds` / :func:`seconds_from_stamp`  ``builtin_interfaces/Time`` ↔ float
+- :func:`stamp_from_seconds` / :func:`seconds_from_stamp`  ``builtin_interfaces/Time`` ↔ float;
+  :func:`stamp_from_ns`  int nanoseconds (the cores' stamps) → ``builtin_interfaces/Time``
 """
 from __future__ import annotations
 
 import array
 
-import numpy as np
-import pinocchio as pin
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, Twist
+import numpy as np
+import pinocchio as pin
 from sensor_msgs.msg import CameraInfo, Image
+from sphere_servo.pipeline.common import NS
 from std_msgs.msg import Header
 
 _ENCODINGS = {3: 'rgb8', 1: 'mono8'}
 
 
+def stamp_from_ns(ns: int) -> Time:
+    """Build the ``builtin_interfaces/Time`` of ``ns`` ≥ 0 nanoseconds."""
+    if ns < 0:
+        raise ValueError(f'a stamp needs a time >= 0, got {ns} ns')
+    return Time(sec=ns // NS, nanosec=ns % NS)
+
+
 def stamp_from_seconds(t: float) -> Time:
-    """``builtin_interfaces/Time`` for ``t`` ≥ 0 seconds (nanoseconds rounded)."""
+    """Build the ``builtin_interfaces/Time`` of ``t`` ≥ 0 seconds (nanoseconds rounded)."""
     if not np.isfinite(t) or t < 0:
         raise ValueError(f'a stamp needs a finite time >= 0, got {t}')
-    ns = int(round(t * 1e9))
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    return stamp_from_ns(int(round(t * 1e9)))
 
 
 def seconds_from_stamp(stamp: Time) -> float:
+    """Return a stamp in seconds."""
     return stamp.sec + stamp.nanosec * 1e-9
 
 
 def header(t: float, frame_id: str) -> Header:
+    """Build a header stamped ``t`` seconds."""
     return Header(stamp=stamp_from_seconds(t), frame_id=frame_id)
 
 
 def image_from_array(img: np.ndarray, hdr: Header, encoding: str | None = None) -> Image:
-    """``sensor_msgs/Image`` from a C-contiguous-able uint8 array: (H, W, 3) → ``rgb8``
-    (default; pass ``encoding='bgr8'`` for OpenCV order), (H, W) or (H, W, 1) → ``mono8``.
-    The bytes are copied once (``array('B')``, which rclpy serialises without a per-element
-    check). Raises ``ValueError`` on another dtype or shape."""
+    """
+    Build a ``sensor_msgs/Image`` from a C-contiguous-able uint8 array.
+
+    (H, W, 3) → ``rgb8`` (default; pass ``encoding='bgr8'`` for OpenCV order), (H, W) or
+    (H, W, 1) → ``mono8``. The bytes are copied once (``array('B')``, which rclpy
+    serialises without a per-element check). Raises ``ValueError`` on another dtype or
+    shape.
+    """
     img = np.asarray(img)
     if img.dtype != np.uint8:
         raise ValueError(f'image must be uint8, got {img.dtype}')
@@ -62,8 +77,7 @@ def image_from_array(img: np.ndarray, hdr: Header, encoding: str | None = None) 
 
 
 def camera_info_from_intrinsics(camera, hdr: Header) -> CameraInfo:
-    """``sensor_msgs/CameraInfo`` from a :class:`~sphere_servo.core.camera.CameraIntrinsics`
-    (its ``to_camera_info_fields``)."""
+    """Build the ``sensor_msgs/CameraInfo`` of a camera (its ``to_camera_info_fields``)."""
     return CameraInfo(header=hdr, **camera.to_camera_info_fields())
 
 
@@ -79,8 +93,12 @@ def pose_from_se3(M: pin.SE3) -> Pose:
 
 
 def se3_from_pose(p: Pose) -> pin.SE3:
-    """Inverse of :func:`pose_from_se3`; raises ``ValueError`` on a non-finite pose or a
-    quaternion of norm ≈ 0 (it is normalised otherwise)."""
+    """
+    Return the ``pin.SE3`` of a pose (the inverse of :func:`pose_from_se3`).
+
+    Raises ``ValueError`` on a non-finite pose or a quaternion of norm ≈ 0 (it is
+    normalised otherwise).
+    """
     o = p.orientation
     qv = np.array([o.x, o.y, o.z, o.w], dtype=float)
     t = np.array([p.position.x, p.position.y, p.position.z], dtype=float)

@@ -1,4 +1,5 @@
-"""``detector``: camera image → the sphere's ellipse and the marks' image points.
+"""
+``detector``: camera image → the sphere's ellipse and the marks' image points.
 
 Subscribes
     ``camera/image_raw``    sensor_msgs/Image       rgb8, bgr8 or mono8
@@ -8,10 +9,15 @@ Publishes (header = the image's header, so stamps flow through the pipeline)
                               :mod:`sphere_servo.ros.vectors`; empty = no sphere
     ``detector/overlay``      sensor_msgs/Image       the frame with the detection drawn
                               (only with ``publish_overlay``), for rqt_image_view / Foxglove
+    ``~/state``               diagnostic_msgs/DiagnosticArray  per image, its header:
+                              ``waiting | found | not found | rejected``; values images,
+                              found, not_found, rejected (counts), camera, reason
+    ``/diagnostics``          the same status, on change and at 1 Hz
 
 A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size) or
 a missing ``camera_info`` is logged as a clear error and answered with an empty measurement
-(target lost, so the servo stops); the node keeps running.
+(target lost, so the servo stops); the node keeps running. The logic is
+:class:`~sphere_servo.pipeline.detector.DetectorCore`'s.
 
 ``intrinsics_error`` = relative errors (px, py, u0, v0) applied to the received intrinsics:
 the paper's calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``.
@@ -20,58 +26,34 @@ from __future__ import annotations
 
 import time
 
-import cv2
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState
-
-from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.targets import make_target
+from sphere_servo.pipeline.common import Refusal
+from sphere_servo.pipeline.detector import DetectorCore, DetectStatus
+from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.ros.conversions import image_from_array
-from sphere_servo.ros.params import Param, declare_all, install_set_callback, run
+from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import measurement_msg
-from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
+from sphere_servo.vision.draw import draw_detection
 
-PARAMS = {
-    'target_kind': Param('special', 'target whose colours and marks to look for',
-                         choices=('special', 'cc', 'balloon'), read_only=True),
-    'intrinsics_error': Param([0.0, 0.0, 0.0, 0.0], 'relative errors (px, py, u0, v0) '
-                              'applied to camera_info (calibration-error experiment)', size=4,
-                              read_only=True),
-    'publish_overlay': Param(False, 'publish detector/overlay (costs a copy and a draw)'),
-}
-
-
-def draw_detection(rgb: np.ndarray, det: Detection) -> np.ndarray:
-    """A copy of ``rgb`` with the fitted ellipse (green) and the marks (crosses) drawn."""
-    out = np.ascontiguousarray(rgb.copy())
-    if det.found and det.ellipse_px is not None:
-        (uc, vc), (a1, a2), ang = det.ellipse_px
-        cv2.ellipse(out, ((uc, vc), (a1, a2), ang), (0, 255, 0), 1, cv2.LINE_AA)
-    for name, mark in det.marks.items():
-        if mark.visible and mark.uv_px is not None:
-            u, v = (int(round(c)) for c in mark.uv_px)
-            cv2.drawMarker(out, (u, v), (255, 255, 0), cv2.MARKER_CROSS, 12, 1)
-            cv2.putText(out, name, (u + 6, v - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                        (255, 255, 0), 1, cv2.LINE_AA)
-    return out
+HARDWARE_ID = 'camera'  # the eye-in-hand camera whose images the detector reads
 
 
 class DetectorNode(Node):
     """See the module docstring."""
 
-    def __init__(self):
-        super().__init__('detector')
-        self.p = declare_all(self, PARAMS)
-        install_set_callback(self, PARAMS, self.p.__setitem__)
-        target = make_target(self.p['target_kind'])
-        self.detector = Detector.for_target(target)
-        self.camera: CameraIntrinsics | None = None
+    def __init__(self, **kwargs):
+        super().__init__('detector', **kwargs)
+        self.core = DetectorCore(declare_all(self, DetectorParams))
+        install_set_callback(self, lambda: self.core.params,
+                             lambda p: setattr(self.core, 'params', p))
         self.pub = self.create_publisher(JointState, 'detector/measurement', 100)
         self.pub_overlay = self.create_publisher(Image, 'detector/overlay', 2)
+        self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, 10)
-        self.frames = 0
         self._last_error = ('', 0.0)
 
     def _error(self, text: str) -> None:
@@ -82,33 +64,26 @@ class DetectorNode(Node):
             self._last_error = (text, now)
 
     def _on_info(self, msg: CameraInfo) -> None:
-        try:
-            cam = CameraIntrinsics.from_camera_info_fields(msg.width, msg.height, msg.k, msg.d)
-            ex, ey, eu, ev = self.p['intrinsics_error']
-            self.camera = cam.with_error(px=ex, py=ey, u0=eu, v0=ev)
-        except ValueError as exc:
-            self.camera = None
-            self.get_logger().error(f'bad camera_info, ignored: {exc}',
+        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+        if isinstance(cam, Refusal):
+            self.get_logger().error(f'bad camera_info, ignored: {cam.reason}',
                                     throttle_duration_sec=2.0)
 
     def _on_image(self, msg: Image) -> None:
-        self.frames += 1
-        det = None
-        try:
-            img = image_from_buffer(msg.height, msg.width, msg.step, msg.encoding, msg.data)
-            if self.camera is None:
-                raise ValueError('no valid camera_info received yet')
-            det = self.detector.detect(img, msg.encoding, self.camera)
-            if not det.found:
-                self.get_logger().warn(f'sphere not detected: {det.reason}',
-                                       throttle_duration_sec=2.0)
-        except ValueError as exc:
-            self._error(f'image rejected: {exc}')
-        self.pub.publish(measurement_msg(det, msg.header))
-        if self.p['publish_overlay'] and det is not None:
+        out = self.core.on_image(msg.height, msg.width, msg.step, msg.encoding, msg.data)
+        if out.status is DetectStatus.REJECTED:
+            self._error(f'image rejected: {out.reason}')
+        elif out.status is DetectStatus.NOT_FOUND:
+            self.get_logger().warn(f'sphere not detected: {out.reason}',
+                                   throttle_duration_sec=2.0)
+        self.pub.publish(measurement_msg(out.measurement, msg.header))
+        if self.core.params.publish_overlay and out.detection is not None:
+            img = out.image
             rgb = img if msg.encoding == 'rgb8' else (
                 img[..., ::-1] if msg.encoding == 'bgr8' else np.dstack([img] * 3))
-            self.pub_overlay.publish(image_from_array(draw_detection(rgb, det), msg.header))
+            self.pub_overlay.publish(image_from_array(draw_detection(rgb, out.detection),
+                                                      msg.header))
+        self.status.update(self.core.status(), msg.header)
 
 
 def main(args=None):

@@ -1,147 +1,102 @@
-"""``features``: measurements → the paper's feature sets, their desired values and errors.
+"""
+``features``: measurements → the paper's feature sets and their desired values.
 
 Subscribes
     ``detector/measurement``  sensor_msgs/JointState  (see :mod:`sphere_servo.ros.vectors`)
     ``camera/camera_info``    sensor_msgs/CameraInfo  only for ``desired_source: image``
-Publishes (header = the image's header)
-    ``features/<set>``        sensor_msgs/JointState  for each set in ``sets`` (default s_n):
-                              position = s, velocity = s*, effort = s − s*; empty = target or
-                              a mark lost. Nothing is published before a desired is set.
+Publishes
+    ``features/<set>``          sensor_msgs/JointState  for each set in ``sets`` (default
+                                s_n): ``position`` = s, header = the image's; empty = target
+                                or a mark lost. Nothing is published before a desired is set.
+    ``features/<set>/desired``  sensor_msgs/JointState  s* (``position``), once per teach;
+                                header = that of the image it was taught from (a zero stamp
+                                for ``desired_source`` pose or image); reliable,
+                                transient-local, depth 1: a late subscriber gets it
+    ``~/state``                 diagnostic_msgs/DiagnosticArray  per measurement, its header:
+                                ``waiting | no desired | tracking | target lost``; values
+                                sets, desired_source, stamp, desired_stamp, reason
+    ``/diagnostics``            the same status, on change and at 1 Hz
 Services
     ``~/teach``               std_srvs/Trigger  the latest measurement becomes the desired
-                              one (teach by showing)
+                              one (teach by showing); the new desired is published on
+                              ``features/<set>/desired`` before the reply
 
-Desired features (``desired_source``):
-    ``teach``  from the ``~/teach`` service (default);
-    ``pose``   from ``desired_cMo`` = [x y z roll pitch yaw] (m, rad; R = Rz Ry Rx) and the
-               target model (exact projection; spherical targets only);
-    ``image``  from the image file ``desired_image``, detected with the intrinsics of the
-               first ``camera_info`` (with ``intrinsics_error`` applied, as the detector does).
+Desired features (``desired_source``): ``teach`` (default), ``pose`` (``desired_cMo``) or
+``image`` (``desired_image``): see :mod:`sphere_servo.pipeline.features`, whose
+:class:`~sphere_servo.pipeline.features.FeaturesCore` holds the logic.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
-import cv2
+from builtin_interfaces.msg import Time
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, JointState
+from sphere_servo.pipeline.common import Refusal, stamp_ns
+from sphere_servo.pipeline.features import DesiredSource, FeaturesCore
+from sphere_servo.pipeline.params import FeaturesParams
+from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.params import declare_all, run
+from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
+                                      measurement_from_msg)
+from sphere_servo.sim.arm import CAMERA_FRAME
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.features import FEATURE_SETS, make_feature_set
-from sphere_servo.core.geometry import GeometryError
-from sphere_servo.core.measurement import Observation, observe
-from sphere_servo.core.targets import make_target
-from sphere_servo.ros.params import Param, ParameterError, declare_all, run
-from sphere_servo.ros.vectors import features_msg, observation_from_measurement
-from sphere_servo.sim.arm import pose_from_xyz_rpy
-from sphere_servo.vision.detector import Detector
-
-PARAMS = {
-    'target_kind': Param('special', "target: 'special', 'cc' or 'balloon' (a balloon is "
-                         'servoed as a special sphere)', choices=('special', 'cc', 'balloon'),
-                         read_only=True),
-    'target_radius': Param(0.05, 'radius r (m) of the target model, for desired_source pose',
-                           range=(1e-4, 10.0), read_only=True),
-    'sets': Param(['s_n'], f'feature sets to publish, among {list(FEATURE_SETS)}',
-                  read_only=True),
-    'desired_source': Param('teach', 'where the desired features come from',
-                            choices=('teach', 'pose', 'image'), read_only=True),
-    'desired_cMo': Param([0.0, 0.0, 0.45, 0.0, 0.0, 0.0], 'desired target pose in the camera '
-                         '[x y z roll pitch yaw] (desired_source pose)', size=6,
-                         read_only=True),
-    'desired_image': Param('', 'desired image file (desired_source image)', read_only=True),
-    'intrinsics_error': Param([0.0, 0.0, 0.0, 0.0], 'relative errors (px, py, u0, v0) for '
-                              'detecting the desired image', size=4, read_only=True),
-}
+HARDWARE_ID = 'camera'  # the eye-in-hand camera whose images the features come from
 
 
 class FeaturesNode(Node):
     """See the module docstring."""
 
-    def __init__(self):
-        super().__init__('features')
-        self.p = p = declare_all(self, PARAMS)
-        for name in p['sets']:
-            if name not in FEATURE_SETS:
-                raise ParameterError(f'sets: unknown feature set {name!r}, use '
-                                     f'{list(FEATURE_SETS)}')
-        if not p['sets']:
-            raise ParameterError('sets must name at least one feature set')
-        self.target = make_target(p['target_kind'], radius=p['target_radius']) \
-            if p['target_kind'] != 'balloon' else make_target('balloon')
-        self.kind = self.target.kind
-        self.sets: dict = {}
-        self.latest: JointState | None = None
+    def __init__(self, **kwargs):
+        super().__init__('features', **kwargs)
+        self.core = FeaturesCore(declare_all(self, FeaturesParams))
         self.pubs = {name: self.create_publisher(JointState, f'features/{name}', 100)
-                     for name in p['sets']}
+                     for name in self.core.names}
+        self.pubs_desired = {name: self.create_publisher(JointState, desired_topic(name),
+                                                         DESIRED_QOS)
+                             for name in self.core.names}
+        self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
+        self.last_header: Header | None = None  # of the latest measurement
         self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
         self.create_service(Trigger, '~/teach', self._srv_teach)
-        if p['desired_source'] == 'pose':
-            if not self.target.is_sphere:
-                raise ParameterError("desired_source 'pose' needs a spherical target model")
-            cMo = pose_from_xyz_rpy(p['desired_cMo'][:3], p['desired_cMo'][3:])
-            try:
-                self._set_desired(observe(cMo, self.target))
-            except GeometryError as exc:
-                raise ParameterError(f'desired_cMo does not show the target: {exc}') from None
-        elif p['desired_source'] == 'image':
-            path = Path(p['desired_image'])
-            if not path.is_file():
-                raise ParameterError(f'desired_image {str(path)!r} is not a file')
-            self._desired_bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            if self._desired_bgr is None:
-                raise ParameterError(f'desired_image {str(path)!r} is not a readable image')
+        if self.core.has_desired:  # from a pose: no image of the run
+            self._publish_desired(Header(stamp=Time(), frame_id=CAMERA_FRAME))
+        elif self.core.source is DesiredSource.IMAGE:
             self._info_sub = self.create_subscription(CameraInfo, 'camera/camera_info',
                                                       self._on_info_for_image, 10)
         else:
             self.get_logger().info('waiting for ~/teach to set the desired features')
 
-    def _set_desired(self, obs: Observation) -> None:
-        """Anchor every published set on ``obs`` (raises GeometryError if it cannot be)."""
-        self.sets = {name: make_feature_set(name, obs) for name in self.p['sets']}
-        s_n = self.sets.get('s_n')
-        self.get_logger().info('desired features set' + (
-            f': s*_n,t = {s_n.desired[:3].round(4).tolist()}' if s_n else ''))
+    def _publish_desired(self, hdr: Header) -> None:
+        for name, s_star in self.core.desired_features().items():
+            self.pubs_desired[name].publish(features_msg(name, hdr, s_star))
+        self.get_logger().info(self.core.describe_desired())
 
     def _on_info_for_image(self, msg: CameraInfo) -> None:
-        if self.sets:
-            return
-        try:
-            cam = CameraIntrinsics.from_camera_info_fields(msg.width, msg.height, msg.k, msg.d)
-            cam = cam.with_error(*self.p['intrinsics_error'])
-            det = Detector.for_target(self.target).detect(self._desired_bgr, 'bgr8', cam)
-            self._set_desired(det.to_observation(self.kind))
-        except (ValueError, GeometryError) as exc:
-            self.get_logger().error(f'desired image {self.p["desired_image"]!r} unusable: '
-                                    f'{exc}', throttle_duration_sec=5.0)
+        out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+        if isinstance(out, Refusal):
+            self.get_logger().error(out.reason, throttle_duration_sec=5.0)
+        elif out is not None:  # a file, not an image of the run: a zero stamp
+            self._publish_desired(Header(stamp=Time(), frame_id=msg.header.frame_id))
 
     def _srv_teach(self, request, response):
-        if self.latest is None:
-            response.success, response.message = False, 'no measurement received yet'
-            return response
-        try:
-            self._set_desired(observation_from_measurement(self.latest, self.kind))
-        except GeometryError as exc:
-            response.success, response.message = False, f'cannot teach this image: {exc}'
-            return response
-        s = self.latest.header.stamp
-        response.success = True
-        response.message = f'desired features taught from the image stamped {s.sec}.{s.nanosec:09d}'
+        taught = self.core.teach()
+        response.success, response.message = taught.success, taught.message
+        if taught.success:  # the taught image is the latest measurement's
+            self._publish_desired(self.last_header)
         return response
 
     def _on_measurement(self, msg: JointState) -> None:
-        self.latest = msg
-        if not self.sets:
-            return
-        try:
-            obs = observation_from_measurement(msg, self.kind)
-            out = {name: (fs.features(obs), fs.desired) for name, fs in self.sets.items()}
-        except GeometryError as exc:
-            self.get_logger().warn(f'target lost: {exc}', throttle_duration_sec=2.0)
-            out = {name: (None, None) for name in self.sets}
-        for name, (s, s_star) in out.items():
-            self.pubs[name].publish(features_msg(name, msg.header, s, s_star))
+        st = msg.header.stamp
+        self.last_header = msg.header
+        out = self.core.on_measurement(stamp_ns(st.sec, st.nanosec), measurement_from_msg(msg))
+        if out is not None:
+            if out.lost:
+                self.get_logger().warn(f'target lost: {out.lost}', throttle_duration_sec=2.0)
+            for name, pub in self.pubs.items():
+                fs = out.values.get(name)
+                pub.publish(features_msg(name, msg.header, None if fs is None else fs.s))
+        self.status.update(self.core.status(), msg.header)
 
 
 def main(args=None):

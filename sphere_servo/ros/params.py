@@ -1,133 +1,108 @@
-"""Parameters declared from a table, with descriptors (description, ranges) and validation
-that *refuses* a bad value with a clear message (as image_tools' cam2image does), and the
-``main()`` shape of ros2/demos' talker shared by the nodes.
+"""
+Parameters declared from a node's table, and the ``main()`` shape shared by the nodes.
 
-A table maps a parameter name to a :class:`Param`. :func:`declare_all` declares every entry
-with a ``ParameterDescriptor`` and returns the validated values; a refused value raises
-:class:`ParameterError` at start, and a later ``ros2 param set`` of a refused value is
-rejected by :func:`install_set_callback`.
+:func:`declare_all` declares every entry of a :class:`~sphere_servo.pipeline.params.NodeParams`
+dataclass's table with a ``ParameterDescriptor`` (description, ranges) and returns the
+validated dataclass; a refused value raises :class:`ParameterError` at start, and a later
+``ros2 param set`` of a refused value is rejected by :func:`install_set_callback`.
+
+:func:`run` is ros2/demos' talker (jazzy) with one change: SIGINT and SIGTERM only set a stop
+flag that the spin loop checks. A ``KeyboardInterrupt`` raised asynchronously can land
+anywhere, also inside rclpy's ``take_message`` (Python called from C++), where pybind turns
+it into a ``RuntimeError`` and the node dies with exit code 1.
 """
 from __future__ import annotations
 
-import math
 import signal
 import sys
-from dataclasses import dataclass
 
-import numpy as np
-import rclpy
-import rclpy.executors
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
-from rclpy.exceptions import (InvalidParameterTypeException,
-                              InvalidParameterValueException)
+import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+import rclpy.executors
 from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
+from sphere_servo.pipeline.params import NodeParams, Param, ParameterError
 
 
-class ParameterError(ValueError):
-    """A parameter value is refused."""
+def descriptor(p: Param) -> ParameterDescriptor:
+    """Return the ``ParameterDescriptor`` of a parameter (description, constraints)."""
+    d = ParameterDescriptor(description=p.description, read_only=p.read_only)
+    if p.choices:
+        d.additional_constraints = f'one of {list(p.choices)}'
+    if p.size:
+        d.additional_constraints = f'{p.size} finite numbers'
+    if p.bounds is not None:
+        lo, hi = p.bounds
+        if isinstance(p.default, bool):
+            pass
+        elif isinstance(p.default, int):
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+        elif isinstance(p.default, float):
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo),
+                                                         to_value=float(hi), step=0.0)]
+    return d
 
 
-@dataclass(frozen=True)
-class Param:
-    """One parameter: default, description, and constraints.
+def declare_all(node, cls: type[NodeParams]) -> NodeParams:
+    """Declare every parameter of ``cls`` on ``node``; return the validated parameters."""
+    return cls.from_mapping({name: node.declare_parameter(name, p.default, descriptor(p)).value
+                             for name, p in cls.table().items()})
 
-    range    (lo, hi) inclusive for numbers; choices: allowed strings; size: length of an
-    array parameter (its entries must be finite; > 0 too with ``positive``); read_only:
-    cannot change after start.
+
+def install_set_callback(node, get, apply) -> None:
     """
+    Reject ``ros2 param set`` of a refused value; otherwise ``apply`` the new parameters.
 
-    default: object
-    description: str
-    range: tuple | None = None
-    choices: tuple | None = None
-    size: int | None = None
-    read_only: bool = False
-    positive: bool = False
-
-    def descriptor(self) -> ParameterDescriptor:
-        d = ParameterDescriptor(description=self.description, read_only=self.read_only)
-        if self.choices:
-            d.additional_constraints = f'one of {list(self.choices)}'
-        if self.size:
-            d.additional_constraints = f'{self.size} finite numbers'
-        if self.range is not None:
-            lo, hi = self.range
-            if isinstance(self.default, bool):
-                pass
-            elif isinstance(self.default, int):
-                d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
-            elif isinstance(self.default, float):
-                d.floating_point_range = [FloatingPointRange(from_value=float(lo),
-                                                             to_value=float(hi), step=0.0)]
-        return d
-
-
-def check(name: str, p: Param, value):
-    """``value`` if ``p`` accepts it; :class:`ParameterError` with a clear message otherwise."""
-    if p.choices is not None and value not in p.choices:
-        raise ParameterError(f'{name} must be one of {list(p.choices)}, got {value!r}')
-    if p.size is not None:
-        arr = np.asarray(value, dtype=float)
-        if arr.shape != (p.size,):
-            raise ParameterError(f'{name} needs {p.size} numbers, got {len(value)}')
-        if not np.all(np.isfinite(arr)):
-            raise ParameterError(f'{name} contains NaN or inf: {list(value)}')
-        if p.positive and np.any(arr <= 0):
-            raise ParameterError(f'{name} must be > 0, got {list(value)}')
-    if isinstance(p.default, (int, float)) and not isinstance(p.default, bool):
-        if not math.isfinite(value):
-            raise ParameterError(f'{name} must be finite, got {value}')
-        if p.range is not None and not p.range[0] <= value <= p.range[1]:
-            raise ParameterError(f'{name} must be in [{p.range[0]}, {p.range[1]}], '
-                                 f'got {value}')
-    return value
-
-
-def declare_all(node, table: dict[str, Param]) -> dict:
-    """Declare every parameter of ``table`` on ``node``; return name → validated value."""
-    values = {}
-    for name, p in table.items():
-        value = node.declare_parameter(name, p.default, p.descriptor()).value
-        values[name] = check(name, p, value)
-    return values
-
-
-def install_set_callback(node, table: dict[str, Param], apply=None) -> None:
-    """Reject ``ros2 param set`` of a refused value; call ``apply(name, value)`` otherwise."""
+    ``get()`` returns the node's current parameters; ``apply(new)`` receives them with the
+    change, validated as at start (the cross-parameter rules included).
+    """
+    table = get().table()
 
     def on_set(params):
-        for prm in params:
-            if prm.name not in table:
-                continue
+        changes = {prm.name: prm.value for prm in params if prm.name in table}
+        if changes:
             try:
-                check(prm.name, table[prm.name], prm.value)
+                new = get().replace(changes)
             except (ParameterError, TypeError, ValueError) as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
-        if apply is not None:
-            for prm in params:
-                if prm.name in table:
-                    apply(prm.name, prm.value)
+            apply(new)
         return SetParametersResult(successful=True)
 
     node.add_on_set_parameters_callback(on_set)
 
 
-def _sigterm_as_interrupt(signum, frame):
-    raise KeyboardInterrupt
+class StopFlag:
+    """Set by SIGINT and SIGTERM; the spin loop ends when it is."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __call__(self, signum, frame) -> None:
+        """Record the request (a signal handler: nothing else, nothing raised)."""
+        self.requested = True
+
+    @classmethod
+    def install(cls) -> StopFlag:
+        """Return a flag that SIGINT and SIGTERM set from now on."""
+        flag = cls()
+        signal.signal(signal.SIGINT, flag)
+        signal.signal(signal.SIGTERM, flag)
+        return flag
 
 
 def run(node_factory, name: str, args=None) -> None:
-    """``main()`` of a node, shaped like ros2/demos' talker (jazzy): spin until Ctrl-C or
-    an external shutdown, then ``destroy_node()`` and ``rclpy.try_shutdown()``. A refused
-    parameter ends the process with a one-line message and exit code 2.
+    """
+    Run a node until Ctrl-C, SIGTERM or an external shutdown.
 
-    rclpy's own SIGINT handler is disabled (SIGTERM is mapped to the same path) so the
-    context is still valid in the node's ``on_shutdown()``: the servo's last word is a zero
-    twist."""
+    Then ``on_shutdown()`` (if the node has one: the servo's last word is a zero twist),
+    ``destroy_node()`` and ``rclpy.try_shutdown()``. rclpy's own signal handler is disabled
+    so the context is still valid in ``on_shutdown()``. A refused parameter ends the
+    process with a one-line message and exit code 2.
+    """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    stop = StopFlag.install()
     try:
         node = node_factory()
     except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
@@ -138,9 +113,9 @@ def run(node_factory, name: str, args=None) -> None:
     try:
         executor = rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)
-        while rclpy.ok():  # wake up regularly so a pending KeyboardInterrupt is raised
+        while rclpy.ok() and not stop.requested:  # the timeout bounds the reaction time
             executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         pass
     finally:
         on_exit = getattr(node, 'on_shutdown', None)

@@ -1,4 +1,5 @@
-"""The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
+"""
+The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
 
 - Robot: the UR5 URDF of ``example-robot-data``, loaded with Pinocchio (:func:`find_ur5_urdf`
   says where it is looked for).
@@ -26,24 +27,59 @@
 - Integration: ``q ← pin.integrate(model, q, q̇ dt)`` with a fixed ``dt``.
 - Watchdog: if no command arrived for more than ``cmd_timeout`` seconds of simulated time,
   ``q̇ = 0`` and status ``timeout``.
+- Refusals (:class:`TwistError`, a ``ValueError`` with a typed ``violation``): a twist that
+  is not 6 finite numbers, or faster than the physical bound ``twist_limit = (v, ω)``
+  (:meth:`ArmModel.command`), is refused *before* anything is integrated, and the arm is
+  stopped at once: zero velocity from the next step, not the previous command until the
+  watchdog. The bound is the smaller of ``MAX_LINEAR_SPEED`` / ``MAX_ANGULAR_SPEED`` (far
+  above any real arm) and ``TWIST_FACTOR`` × the fastest camera motion the arm can make at
+  its URDF joint speed limits (:attr:`ArmModel.reach_speed`); for the UR5 that is
+  ``‖v‖ ≤ 100 m/s``, ``‖ω‖ ≤ 190 rad/s``, above the servo's own saturation bounds
+  (``v_max ≤ 10 m/s``, ``w_max ≤ 100 rad/s``), so a servo within them is never refused.
+- Error state: :meth:`ArmModel.step` never integrates a non-finite state. If ``q`` or ``q̇``
+  is ever not finite, or ``q`` leaves the position limits by more than round-off
+  (``LIMIT_TOL``), the arm holds still with status ``error`` and :meth:`ArmModel.command`
+  refuses every twist (``Bound.STATE``) until :meth:`ArmModel.reset`.
 - Ground truth: ``wMc`` (camera in the world), ``cMo`` (target in the camera) with the
   target placed at ``wMo`` in the world.
+
+Stopping distance. The model has no acceleration limit: the velocity of a step is the
+command's. After a refused twist the next step's velocity is zero, so the motion after the
+refusal is at most the one period already running under the previous command: per joint
+``|Δq_i| ≤ q̇max_i dt``, for the camera ``‖Δp‖ ≤ v dt`` with v the previous command's speed
+(at most ``reach_speed[0]·velocity_scale``). At 30 Hz (dt = 33.3 ms): ``Δq_i ≤ 0.107 rad``
+at the UR5's 3.2 rad/s (0.053 rad at the configs' ``velocity_scale: 0.5``); a servo
+saturated at 0.25 m/s and 1.5 rad/s moves the camera ≤ 8.3 mm and ≤ 0.05 rad. After the
+last command the watchdog stops the arm after :meth:`ArmModel.watchdog_steps` =
+``⌊cmd_timeout/dt⌋ + 1`` steps (the step whose start is more than ``cmd_timeout`` after the
+command is the first at rest): 16 steps = 0.533 s for ``cmd_timeout = 0.5`` at 30 Hz (0.133
+m at 0.25 m/s), 7 steps = 0.233 s for 0.2 s (58 mm).
 """
 from __future__ import annotations
 
-import glob
-import os
-import sys
 from dataclasses import dataclass, field
 from enum import Enum
-from pathlib import Path
+import math
 
 import numpy as np
 import pinocchio as pin
 
-URDF_ENV = 'SPHERE_SERVO_UR5_URDF'
-URDF_REL = 'example-robot-data/robots/ur_description/urdf/ur5_robot.urdf'
+from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.validation import Bound, check_array, refuse, Violation
+# the URDF and pose helpers: re-exported, their callers know them from here
+from sphere_servo.sim.ur5 import (find_ur5_urdf, pose_from_xyz_rpy,  # noqa: F401
+                                  pose_to_xyz_rpy, URDF_ENV, URDF_REL)
+
 CAMERA_FRAME = 'camera_optical_frame'
+#: absolute bounds on a commanded camera twist: 10× the fastest industrial (delta) robots'
+#: ~10 m/s, 100× a UR5's rated 1 m/s tool speed; ω: 10× the sum of six 3.2 rad/s joints
+MAX_LINEAR_SPEED = 100.0    # m/s
+MAX_ANGULAR_SPEED = 200.0   # rad/s
+#: a twist is refused beyond this many times the fastest motion the arm itself can make
+TWIST_FACTOR = 10.0
+#: how far (rad) an integrated q may leave a position limit before the state is invalid:
+#: round-off only, since a joint that would cross a limit is landed on it (step 4)
+LIMIT_TOL = 1e-9
 
 
 class Status(str, Enum):
@@ -53,18 +89,25 @@ class Status(str, Enum):
     JOINT_LIMIT = 'joint_limit'
     SINGULARITY = 'singularity'
     TIMEOUT = 'timeout'
+    ERROR = 'error'  # the state became invalid: held still, commands refused until reset
+
+
+class TwistError(GeometryError):
+    """A camera twist refused by the arm (``violation`` says which bound); the arm stops."""
 
 
 @dataclass
 class StepInfo:
-    """What the last mapping/step did.
+    """
+    What the last mapping/step did.
 
-    status   the most important condition (timeout > joint_limit > singularity > ok).
+    status   the most important condition (error > timeout > joint_limit > singularity > ok).
     joints   names of the joints locked at a position limit (for ``joint_limit``).
     qdot     the joint velocities applied (nv,).
     scale    the uniform factor applied to q̇ (velocity limits, singularity, limit landing).
     sigma_min  smallest singular value of the camera Jacobian at the start of the step.
     flags    every condition met (a set of :class:`Status`).
+    error    what made the state invalid (for ``error``).
     """
 
     status: Status = Status.OK
@@ -73,10 +116,13 @@ class StepInfo:
     scale: float = 1.0
     sigma_min: float = float('nan')
     flags: set = field(default_factory=set)
+    error: Violation | None = None
 
     @property
     def message(self) -> str:
         """Human-readable details, e.g. ``'wrist_3_joint at limit'``."""
+        if self.status == Status.ERROR:
+            return f'invalid state, holding still until reset: {self.error}'
         if self.status == Status.JOINT_LIMIT:
             return ', '.join(self.joints) + ' at position limit'
         if self.status == Status.SINGULARITY:
@@ -86,56 +132,9 @@ class StepInfo:
         return ''
 
 
-def find_ur5_urdf(override: str | os.PathLike | None = None) -> str:
-    """Path of ``ur5_robot.urdf``. Looked for, in this order: ``override``; the environment
-    variable ``SPHERE_SERVO_UR5_URDF``; ``cmeel.prefix/share/…`` under ``sys.prefix`` and
-    every ``site-packages`` on ``sys.path`` (the PyPI ``example-robot-data`` wheel); the
-    ``example-robot-data`` share directory of an ament (full ROS) install.
-    Raises ``FileNotFoundError`` listing the places searched."""
-    tried = []
-    for cand in (override, os.environ.get(URDF_ENV)):
-        if cand:
-            if Path(cand).is_file():
-                return str(cand)
-            tried.append(str(cand))
-            if cand is override:
-                raise FileNotFoundError(f'UR5 URDF not found at the given path {cand!r}')
-    roots = [sys.prefix, *[p for p in sys.path if p.endswith('-packages')]]
-    for root in roots:
-        for pattern in (f'{root}/cmeel.prefix/share/{URDF_REL}',
-                        f'{root}/lib*/python*/site-packages/cmeel.prefix/share/{URDF_REL}'):
-            hits = sorted(glob.glob(pattern))
-            if hits:
-                return hits[0]
-            tried.append(pattern)
-    try:  # a full ROS install (ros-jazzy-example-robot-data)
-        from ament_index_python.packages import get_package_share_directory
-        share = Path(get_package_share_directory('example-robot-data'))
-        cand = share / 'robots/ur_description/urdf/ur5_robot.urdf'
-        if cand.is_file():
-            return str(cand)
-        tried.append(str(cand))
-    except Exception:  # noqa: BLE001 - ament index absent or package unknown
-        tried.append('ament index: example-robot-data')
-    raise FileNotFoundError(
-        'UR5 URDF (example-robot-data) not found; install it with '
-        "`pip install example-robot-data` or set SPHERE_SERVO_UR5_URDF. Searched: "
-        + '; '.join(tried))
-
-
-def pose_from_xyz_rpy(xyz, rpy) -> pin.SE3:
-    """SE3 from a translation and roll-pitch-yaw (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
-    return pin.SE3(pin.rpy.rpyToMatrix(*np.asarray(rpy, dtype=float)),
-                   np.asarray(xyz, dtype=float))
-
-
-def pose_to_xyz_rpy(M: pin.SE3) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`pose_from_xyz_rpy`."""
-    return np.array(M.translation), np.asarray(pin.rpy.matrixToRpy(M.rotation))
-
-
 class ArmModel:
-    """UR5 + eye-in-hand camera kinematics, DLS command mapping, limits and a watchdog.
+    """
+    UR5 + eye-in-hand camera kinematics, DLS command mapping, limits and a watchdog.
 
     Parameters
     ----------
@@ -149,6 +148,7 @@ class ArmModel:
     velocity_scale fraction of the URDF joint velocity limits used (0, 1].
     cmd_timeout    watchdog timeout, seconds of simulated time.
     limit_margin   distance (rad) to a position limit within which a joint counts as at it.
+
     """
 
     def __init__(self, urdf_path=None, tool0Mc: pin.SE3 | None = None,
@@ -187,6 +187,9 @@ class ArmModel:
         self.cmd_timeout = float(cmd_timeout)
         self.limit_margin = float(limit_margin)
         self.wMo = pin.SE3.Identity() if wMo is None else pin.SE3(wMo)
+        self.reach_speed = self._reach_speed()
+        self.twist_limit = (min(MAX_LINEAR_SPEED, TWIST_FACTOR * self.reach_speed[0]),
+                            min(MAX_ANGULAR_SPEED, TWIST_FACTOR * self.reach_speed[1]))
         self.q_start = self._check_q(pin.neutral(self.model) if q0 is None else q0, 'q0')
         self.named: dict[str, np.ndarray] = {'start': self.q_start.copy()}
         self.reset()
@@ -205,13 +208,43 @@ class ArmModel:
             raise ValueError(f'{what} is outside the joint position limits for {bad}')
         return q.copy()
 
+    def _reach_speed(self) -> tuple[float, float]:
+        """
+        Bound the camera's speed at the URDF joint speed limits: ``(‖v‖max, ‖ω‖max)``.
+
+        For revolute joints (the UR5's) ``v_c = Σ q̇_i a_i × r_i`` and ``ω_c = Σ q̇_i a_i``
+        with ``‖r_i‖`` (joint i's axis to the camera) at most the sum ``L_i`` of the
+        placements' lengths from joint i to the camera frame, in any configuration; so
+        ``‖v‖ ≤ Σ q̇max_i L_i`` and ``‖ω‖ ≤ Σ q̇max_i`` (UR5: 11.2 m/s, 19.05 rad/s).
+        """
+        vlim = np.array(self.model.velocityLimit)
+        frame = self.model.frames[self.cam_id]
+        j, length = frame.parentJoint, float(np.linalg.norm(frame.placement.translation))
+        v = w = 0.0
+        while j > 0:
+            i = self.model.idx_vs[j]
+            v += float(vlim[i]) * length
+            w += float(vlim[i])
+            length += float(np.linalg.norm(self.model.jointPlacements[j].translation))
+            j = self.model.parents[j]
+        return v, w
+
+    def watchdog_steps(self, dt: float) -> int:
+        """
+        Count the steps of ``dt`` still run under a command before the watchdog stops it.
+
+        ``⌊cmd_timeout/dt⌋ + 1``: a step runs while ``t − t_cmd ≤ cmd_timeout`` at its start.
+        """
+        return int(math.floor((self.cmd_timeout + 1e-9) / dt)) + 1
+
     def reset(self, q=None) -> None:
-        """Back to the start configuration (or ``q``), at rest, time 0, no command."""
+        """Back to the start configuration (or ``q``), at rest, time 0, no command, no error."""
         self.q = self._check_q(self.q_start if q is None else q)
         self.qdot = np.zeros(self.model.nv)
         self.t = 0.0
         self._cmd = np.zeros(6)
         self._cmd_time: float | None = None
+        self.error: Violation | None = None
         self.info = StepInfo(qdot=self.qdot.copy())
 
     def set_q(self, q) -> None:
@@ -244,8 +277,11 @@ class ArmModel:
         return float(np.linalg.svd(self.camera_jacobian(q), compute_uv=False)[-1])
 
     def _dls(self, J: np.ndarray, v: np.ndarray, sigma_min: float) -> np.ndarray:
-        """Damped least squares ``Jᵀ(JJᵀ + λ²I)⁻¹ v`` with λ² = λ_max²(1 − (σ/σ₀)²) below
-        σ₀ = singular_threshold, 0 above (Nakamura–Chiaverini)."""
+        """
+        Damped least squares ``Jᵀ(JJᵀ + λ²I)⁻¹ v`` (Nakamura–Chiaverini).
+
+        λ² = λ_max²(1 − (σ/σ₀)²) below σ₀ = singular_threshold, 0 above.
+        """
         lam2 = 0.0
         if sigma_min < self.singular_threshold:
             lam2 = self.damping ** 2 * (1.0 - (sigma_min / self.singular_threshold) ** 2)
@@ -254,13 +290,14 @@ class ArmModel:
 
     # --- command mapping ----------------------------------------------------------------
     def twist_to_qdot(self, v_c, dt: float | None = None) -> StepInfo:
-        """Joint velocities realising camera twist ``v_c`` at the current configuration, with
-        limits applied (see the module docstring). ``dt`` (if given) lands joints exactly
-        on limits they would cross within the step. Raises ``ValueError`` on a non-finite
-        or wrongly-sized twist."""
-        v_c = np.asarray(v_c, dtype=float).ravel()
-        if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
-            raise ValueError(f'camera twist must be 6 finite numbers, got {v_c}')
+        """
+        Joint velocities realising camera twist ``v_c`` at the current configuration.
+
+        Limits are applied (see the module docstring). ``dt`` (if given) lands joints
+        exactly on limits they would cross within the step. Raises :class:`TwistError` (a
+        ``ValueError``) on a twist that :meth:`check_twist` refuses.
+        """
+        v_c = self.check_twist(v_c)
         info = StepInfo()
         J = self.camera_jacobian()
         info.sigma_min = float(np.linalg.svd(J, compute_uv=False)[-1])
@@ -318,44 +355,123 @@ class ArmModel:
         return info
 
     def command(self, v_c) -> None:
-        """Set the camera twist to execute from now on (stamped with the sim time).
-        Raises ``ValueError`` on NaN/inf or a wrong size, leaving the previous command."""
-        v_c = np.asarray(v_c, dtype=float).ravel()
-        if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
-            raise ValueError(f'camera twist must be 6 finite numbers, got {v_c}')
+        """
+        Set the camera twist to execute from now on (stamped with the sim time).
+
+        Refused with :class:`TwistError` (whose ``violation`` names the bound), *after*
+        stopping the arm (zero velocity from the next step): a twist that is not 6 finite
+        numbers, ``‖v‖ > twist_limit[0]`` m/s or ``‖ω‖ > twist_limit[1]`` rad/s (see the
+        module docstring), and any twist while the arm is in the ``error`` state.
+        """
+        try:
+            if self.error is not None:
+                refuse(TwistError, 'camera twist', 'any', Bound.STATE,
+                       f'none while the arm is in error ({self.error}): reset first')
+            v_c = self.check_twist(v_c)
+        except TwistError:
+            self.stop()
+            raise
         self._cmd = v_c.copy()
         self._cmd_time = self.t
+
+    def check_twist(self, v_c) -> np.ndarray:
+        """
+        Return ``v_c`` as a (6,) array, or refuse it with :class:`TwistError`.
+
+        6 finite numbers with ``‖v‖ ≤ twist_limit[0]`` m/s and ``‖ω‖ ≤ twist_limit[1]`` rad/s.
+        """
+        try:  # the common case first, in floats: NaN and inf fail the comparisons
+            a = np.asarray(v_c, dtype=float).ravel()
+            x, y, z, wx, wy, wz = a.tolist()
+            if (math.hypot(x, y, z) <= self.twist_limit[0]
+                    and math.hypot(wx, wy, wz) <= self.twist_limit[1]):
+                return a
+        except (TypeError, ValueError):
+            pass
+        v_c = check_array(TwistError, 'camera twist', np.ravel(v_c), (6,))
+        for name, part, lim, unit in (('‖v‖', v_c[:3], self.twist_limit[0], 'm/s'),
+                                      ('‖ω‖', v_c[3:], self.twist_limit[1], 'rad/s')):
+            n = math.hypot(*part)  # no overflow for a finite twist
+            if not n <= lim:
+                refuse(TwistError, f'{name} of the camera twist', n, Bound.RANGE,
+                       f'≤ {lim:.4g} {unit}: {TWIST_FACTOR:g}× the fastest the arm can '
+                       'move, or the absolute bound')
+        return v_c
 
     def stop(self) -> None:
         """Drop the current command (the arm halts at the next step)."""
         self._cmd = np.zeros(6)
 
     def step(self, dt: float) -> StepInfo:
-        """Advance the simulation by ``dt`` seconds under the current command."""
+        """
+        Advance the simulation by ``dt`` seconds under the current command.
+
+        Never integrates an invalid state: a non-finite ``q`` or ``q̇``, or a ``q`` beyond
+        the position limits by more than ``LIMIT_TOL``, puts the arm in the ``error`` state
+        (held still, time still advancing) until :meth:`reset`.
+        """
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f'dt must be a finite number > 0, got {dt}')
-        if self._cmd_time is None or self.t - self._cmd_time > self.cmd_timeout + 1e-9:
+        if self.error is None:
+            self._check_state(self.q, 'joint positions q')
+        if self.error is not None:
+            info = self._error_info()
+        elif self._cmd_time is None or self.t - self._cmd_time > self.cmd_timeout + 1e-9:
             info = StepInfo(status=Status.TIMEOUT, qdot=np.zeros(self.model.nv),
                             scale=0.0, flags={Status.TIMEOUT})
             if self._cmd_time is None:  # never commanded: idle, not a fault
                 info = StepInfo(qdot=np.zeros(self.model.nv))
         else:
             info = self.twist_to_qdot(self._cmd, dt)
+        if np.any(info.qdot):
+            q = None
+            if np.all(np.isfinite(info.qdot)):
+                q = pin.integrate(self.model, self.q, info.qdot * dt)
+            if self._check_state(q, 'integrated q', info.qdot):
+                self.q = np.clip(q, self.lower, self.upper)  # round-off only (step 4 lands)
+            else:
+                info = self._error_info()
         self.qdot = info.qdot
-        if np.any(self.qdot):
-            q = pin.integrate(self.model, self.q, self.qdot * dt)
-            self.q = np.clip(q, self.lower, self.upper)  # round-off only (step 4 lands)
         self.t += dt
         self.info = info
         return info
 
+    def _check_state(self, q, what: str, qdot=None) -> bool:
+        """Tell whether ``q`` (and ``qdot``) are a valid state; if not, enter ``error``."""
+        if (q is not None and (qdot is None or math.isfinite(float(qdot @ qdot)))
+                and float(np.max(np.maximum(self.lower - q, q - self.upper))) <= LIMIT_TOL):
+            return True  # the common case in one pass: NaN fails the comparison
+        if qdot is not None and not np.all(np.isfinite(qdot)):
+            self._fail(Violation('joint velocities q̇', np.asarray(qdot), Bound.FINITE))
+        elif q is None or not np.all(np.isfinite(q)):
+            self._fail(Violation(what, np.asarray(q), Bound.FINITE))
+        else:
+            out = np.maximum(self.lower - q, q - self.upper)
+            if np.any(out > LIMIT_TOL):
+                i = int(np.argmax(out))
+                self._fail(Violation(f'{self.joint_names[i]} position', float(q[i]),
+                                     Bound.RANGE, f'[{self.lower[i]:g}, {self.upper[i]:g}] '
+                                     f'rad within {LIMIT_TOL:g}'))
+        return self.error is None
+
+    def _fail(self, violation: Violation) -> None:
+        self.error = violation
+        self._cmd = np.zeros(6)
+
+    def _error_info(self) -> StepInfo:
+        return StepInfo(status=Status.ERROR, qdot=np.zeros(self.model.nv), scale=0.0,
+                        flags={Status.ERROR}, error=self.error)
+
     # --- inverse kinematics -------------------------------------------------------------
     def solve_ik(self, wMc_des: pin.SE3, q_seed=None, tol: float = 1e-6,
                  max_iter: int = 500, damping: float = 1e-3) -> tuple[np.ndarray, bool, float]:
-        """Joint configuration putting the camera at ``wMc_des``, by iterating DLS on the
-        camera-frame error ``log6(wMc⁻¹ wMc_des)`` from ``q_seed`` (current q by default),
-        kept within the position limits. Returns ``(q, converged, error_norm)``; does not
-        move the arm."""
+        """
+        Joint configuration putting the camera at ``wMc_des``; does not move the arm.
+
+        DLS iterated on the camera-frame error ``log6(wMc⁻¹ wMc_des)`` from ``q_seed``
+        (current q by default), kept within the position limits. Returns
+        ``(q, converged, error_norm)``.
+        """
         q = self.q.copy() if q_seed is None else self._check_q(q_seed, 'q_seed')
         err = np.inf
         for _ in range(max_iter):

@@ -1,4 +1,5 @@
-"""Observers ``cMo -> Observation`` for the paper runner and the Monte Carlo study (no ROS).
+"""
+Observers ``cMo -> Observation`` for the paper runner and the Monte Carlo study (no ROS).
 
 - :func:`exact_observer`  analytic image of the target (sphere *or* ellipsoid) with, on
   request, the controller's wrong intrinsics (calibration error) and Gaussian pixel noise
@@ -7,9 +8,9 @@
 - :func:`image_observer`  render with the true camera, detect with the controller's camera
   (which may carry the calibration error): the real vision pipeline.
 
-The silhouette of an ellipsoid (quadric Q in the camera frame) seen from the camera centre is
-the conic ``C = ((Q⁻¹)₃ₓ₃)⁻¹`` in normalized coordinates (dual quadric projected by
-``[I | 0]``). For a sphere that is ``∝ b bᵀ − cos²θ I`` (DESIGN.md §2).
+The silhouette of the body, a sphere or an ellipsoid, is
+:func:`~sphere_servo.core.conics.ellipsoid_silhouette` (for a sphere ``∝ b bᵀ − cos²θ I``,
+DESIGN.md §2).
 A calibration error maps true normalized points ``x̄`` to believed ones ``A x̄`` with
 ``A = K_ctrl⁻¹ K_true``; the conic becomes ``A⁻ᵀ C A⁻¹``.
 """
@@ -19,40 +20,37 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.measurement import (MeasurementError, Observation, mark_visible, sphere_from_conic,
-                          unit_ray)
+from sphere_servo.core.conics import (conic_normalized_to_pixels, ellipse_params,
+                                      ellipsoid_silhouette, fit_conic)
+from sphere_servo.core.measurement import (mark_visible, MeasurementError, Observation,
+                                           sphere_from_conic, unit_ray)
 from sphere_servo.core.targets import Target
 
 
 def silhouette_conic(cMo: pin.SE3, target: Target) -> np.ndarray:
     """3×3 conic of the target's occluding contour in (true) normalized coordinates."""
     axes = np.full(3, target.radius) if target.axes is None else target.axes
-    Qo = np.diag([*(1.0 / axes ** 2), -1.0])
-    oMc = cMo.inverse().homogeneous
-    Qc = oMc.T @ Qo @ oMc
     if np.linalg.norm(cMo.translation) <= np.max(axes):
         raise MeasurementError('camera is inside (or too close to) the target')
-    dual = np.linalg.inv(Qc)[:3, :3]
-    C = np.linalg.inv(dual)
-    return C / np.linalg.norm(C)
+    return ellipsoid_silhouette(cMo, axes)
 
 
 def _ellipse_points(C_px: np.ndarray, n: int) -> np.ndarray:
     """``n`` points evenly spread in angle on the ellipse of conic ``C_px`` (pixels)."""
-    from sphere_servo.vision.detector import ellipse_params  # lazy: cv2 only when noise is asked
     ep = ellipse_params(C_px)
     if ep is None:
         raise MeasurementError('silhouette is not an ellipse')
     c, ax, ang = ep
     t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
-    return c + (np.column_stack([ax[0] * np.cos(t), ax[1] * np.sin(t)]) @ R.T)
+    return np.asarray(c) + (np.column_stack([ax[0] * np.cos(t), ax[1] * np.sin(t)]) @ R.T)
 
 
 def exact_observer(target: Target, camera: CameraIntrinsics | None = None,
                    camera_ctrl: CameraIntrinsics | None = None, pixel_noise: float = 0.0,
                    seed: int = 0, contour_points: int = 64):
-    """``cMo -> Observation`` from the analytic image.
+    """
+    ``cMo -> Observation`` from the analytic image.
 
     camera       the true intrinsics (default :class:`CameraIntrinsics`).
     camera_ctrl  the intrinsics the controller believes (default: the true ones).
@@ -73,8 +71,7 @@ def exact_observer(target: Target, camera: CameraIntrinsics | None = None,
             raise MeasurementError('target behind the camera')
         C = silhouette_conic(cMo, target)
         if pixel_noise > 0:
-            from sphere_servo.vision.detector import fit_conic
-            C_px = cam.K_inv.T @ C @ cam.K_inv
+            C_px = conic_normalized_to_pixels(C, cam.px, cam.py, cam.u0, cam.v0)
             pts = _ellipse_points(C_px, contour_points)
             pts = pts + rng.normal(0.0, pixel_noise, pts.shape)
             C = fit_conic(ctrl.pixel_to_normalized(pts))
@@ -102,8 +99,12 @@ def exact_observer(target: Target, camera: CameraIntrinsics | None = None,
 def image_observer(target: Target, camera: CameraIntrinsics | None = None,
                    camera_ctrl: CameraIntrinsics | None = None, noise_sigma: float = 0.0,
                    seed: int = 0):
-    """``cMo -> Observation``: render with the true ``camera`` (grey-level noise
-    ``noise_sigma``, seeded), detect with ``camera_ctrl`` (default: the true one)."""
+    """
+    Build the observer ``cMo -> Observation`` of the real vision pipeline.
+
+    Render with the true ``camera`` (grey-level noise ``noise_sigma``, seeded), detect with
+    ``camera_ctrl`` (default: the true one).
+    """
     from sphere_servo.vision.detector import Detector
     from sphere_servo.vision.renderer import Renderer
     cam = camera or CameraIntrinsics()

@@ -1,5 +1,7 @@
-"""Figures in the style of the paper's Fig. 3 and Fig. 4, from loop histories (matplotlib,
-headless Agg backend). Pure: no ROS.
+"""
+Figures in the style of the paper's Fig. 3 and Fig. 4, from loop histories (no ROS).
+
+matplotlib with the headless Agg backend.
 
 ``fig3(t, e, v, labels, path)``     feature errors and camera velocities (m/s, deg/s)
 ``fig4(runs, path)``                camera trajectory in the desired frame and image
@@ -28,8 +30,11 @@ def plot_errors(ax, t: np.ndarray, e: np.ndarray, labels, fontsize: int = 8) -> 
 
 
 def plot_twist(ax, t: np.ndarray, v: np.ndarray, fontsize: int = 8):
-    """Camera twists (N, 6): translation (m/s) on ``ax``, rotation (deg/s, dashed) on a
-    twin axis; one legend. Returns the twin axis."""
+    """
+    Plot camera twists (N, 6): translation (m/s) on ``ax``, rotation on a twin axis.
+
+    The rotation (deg/s) is dashed; one legend for both. Returns the twin axis.
+    """
     names = ('v_x (m/s)', 'v_y (m/s)', 'v_z (m/s)', 'ω_x (deg/s)', 'ω_y (deg/s)', 'ω_z (deg/s)')
     axb = ax.twinx()
     for i in range(3):
@@ -53,10 +58,21 @@ def save(fig, path: str | Path, title: str = '', dpi: int = 110) -> Path:
     return path
 
 
+def shrink_png(path: Path, colors: int = 96) -> Path:
+    """Quantize a PNG to a palette (figures are line plots: 3–5× smaller, same look)."""
+    from PIL import Image
+    im = Image.open(path).convert('RGB')
+    im.quantize(colors=colors, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
+    return path
+
+
 def fig3(t: np.ndarray, e: np.ndarray, v: np.ndarray, labels, path: str | Path,
          title: str = '') -> Path:
-    """Paper Fig. 3: (a) feature error s − s* over time, (b) camera velocities
-    (translation m/s, rotation deg/s) in the camera frame."""
+    """
+    Draw the paper's Fig. 3: (a) feature error s − s* over time, (b) camera velocities.
+
+    The velocities (translation m/s, rotation deg/s) are in the camera frame.
+    """
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     plot_errors(ax1, t, e, labels)
     ax1.set_xlabel('time (s)')
@@ -71,15 +87,22 @@ def fig3(t: np.ndarray, e: np.ndarray, v: np.ndarray, labels, path: str | Path,
 
 
 def _image_xy(u: np.ndarray) -> np.ndarray:
-    """Unit vectors (N, 3) → normalized image coordinates (N, 2) in metres at unit focal
-    length (the paper plots image trajectories in m)."""
+    """
+    Map unit vectors (N, 3) to normalized image coordinates (N, 2).
+
+    In metres at unit focal length: the paper plots image trajectories in m.
+    """
     return u[:, :2] / u[:, 2:3]
 
 
 @dataclass
 class Trajectory:
-    """What Fig. 4 draws for one run: camera centre (N, 3) in the *desired camera frame*, and
-    unit vectors (camera frame) of b and of the marks, by name."""
+    """
+    What Fig. 4 draws for one run.
+
+    The camera centre (N, 3) in the *desired camera frame*, and unit vectors (camera frame)
+    of b and of the marks, by name.
+    """
 
     positions: np.ndarray
     b: np.ndarray
@@ -94,9 +117,12 @@ def trajectory_from_loop(res: LoopResult) -> Trajectory:
 
 
 def fig4(runs: dict, path: str | Path, title: str = '') -> Path:
-    """Paper Fig. 4: (a) camera trajectory (m) in the desired camera frame, (b) image
-    trajectory of b, (c) of P1, (d) of the second mark (P2 or P3), for each run
-    (name → :class:`Trajectory` or :class:`LoopResult`)."""
+    """
+    Draw the paper's Fig. 4 for each run (name → :class:`Trajectory` or LoopResult).
+
+    (a) camera trajectory (m) in the desired camera frame, (b) image trajectory of b,
+    (c) of P1, (d) of the second mark (P2 or P3).
+    """
     fig = plt.figure(figsize=(13, 4))
     ax = fig.add_subplot(1, 4, 1, projection='3d')
     axes = [fig.add_subplot(1, 4, k) for k in (2, 3, 4)]

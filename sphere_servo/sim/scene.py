@@ -302,12 +302,17 @@ class Scene:
             colors={'body': target.colors['body'],
                     **{name: target.colors.get(name, target.colors.get('P2'))
                        for name in target.marks()}})
-        self.wMc_desired = None if cMo_desired is None else wMo * cMo_desired.inverse()
+        self.set_desired(cMo_desired)
         W, H = camera.width, camera.height
         uv = np.array([[0.0, 0.0], [W, 0.0], [W, H], [0.0, H]]) - 0.5  # pixel edges
         xy = camera.pixel_to_normalized(uv)
         self.cX_frustum = np.vstack([np.zeros(3), self.frustum_depth
                                      * np.hstack([xy, np.ones((4, 1))])])
+
+    def set_desired(self, cMo_desired: pin.SE3 | None) -> None:
+        """Set the desired camera from the desired target pose ``c*Mo`` (None: no desired)."""
+        self.wMc_desired = None if cMo_desired is None else \
+            self.target.wMo * cMo_desired.inverse()
 
     def _q(self, q) -> np.ndarray:
         q = np.asarray(q, dtype=float).ravel()

@@ -1,4 +1,5 @@
-"""Ray-casting renderer of the marked targets (no ROS). DESIGN.md §1, §2, §5.
+"""
+Ray-casting renderer of the marked targets (no ROS). DESIGN.md §1, §2, §5.
 
 Every pixel ``(u, v)`` is a ray ``x̄ = K⁻¹ (u, v, 1)`` from the camera centre (camera optical
 frame: z forward, x right, y down). The ray is intersected with
@@ -21,12 +22,12 @@ Optional Gaussian noise (grey levels), Gaussian blur (pixels) and lighting gain.
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pinocchio as pin
 
-import cv2
-
 from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.conics import conic_bbox, conic_normalized_to_pixels, sphere_silhouette
 from sphere_servo.core.targets import CC, Target
 
 BACKGROUNDS = ('gradient', 'clutter', 'flat')
@@ -40,40 +41,14 @@ _SUB_X = (np.arange(_N_SUB) + 0.5) / _N_SUB - 0.5
 _SUB_Y = ((np.arange(_N_SUB) * 5) % _N_SUB + 0.5) / _N_SUB - 0.5
 
 
-def ball_silhouette(c: np.ndarray, rad: float) -> np.ndarray:
-    """Conic (normalized image coordinates) of the silhouette of a ball of radius ``rad``
-    centred at ``c`` (camera frame, in front of the camera): ``b bᵀ − cos²θ I`` with
-    ``b = c/‖c‖``, ``sin θ = rad/‖c‖`` (DESIGN.md §2)."""
-    dist = float(np.linalg.norm(c))
-    b = np.asarray(c, float) / dist
-    return np.outer(b, b) - (1.0 - (rad / dist) ** 2) * np.eye(3)
-
-
-def conic_bbox(C: np.ndarray) -> tuple[float, float, float, float] | None:
-    """Axis-aligned bounding box ``(x_min, x_max, y_min, y_max)`` of the ellipse
-    ``x̄ᵀ C x̄ = 0`` (3×3, any coordinates), from its vertical and horizontal tangent lines
-    ``lᵀ C⁻¹ l = 0`` with ``l = (1, 0, −x)`` and ``(0, 1, −y)``. ``None`` if the conic is not
-    a real bounded ellipse."""
-    try:
-        D = np.linalg.inv(C)
-    except np.linalg.LinAlgError:
-        return None
-    out = []
-    for i in (0, 1):
-        # D_ii − 2 x D_i2 + x² D_22 = 0
-        a, b, c = D[2, 2], -2.0 * D[i, 2], D[i, i]
-        disc = b * b - 4 * a * c
-        if abs(a) < 1e-300 or disc < 0:
-            return None
-        s = np.sqrt(disc)
-        out += sorted(((-b - s) / (2 * a), (-b + s) / (2 * a)))
-    return tuple(out)
-
-
 def _make_background(kind, width: int, height: int, rng: np.random.Generator) -> np.ndarray:
-    """(H, W, 3) uint8 background. 'gradient': dark smooth gradient with low-frequency
-    texture; 'clutter': the same plus random dark-to-mid coloured shapes; 'flat': grey 40;
-    or an (H, W, 3) uint8 array used as is."""
+    """
+    Make the (H, W, 3) uint8 background.
+
+    'gradient': dark smooth gradient with low-frequency texture; 'clutter': the same plus
+    random dark-to-mid coloured shapes; 'flat': grey 40; or an (H, W, 3) uint8 array used
+    as is.
+    """
     if isinstance(kind, np.ndarray):
         bg = np.asarray(kind)
         if bg.shape != (height, width, 3) or bg.dtype != np.uint8:
@@ -113,7 +88,8 @@ def _make_background(kind, width: int, height: int, rng: np.random.Generator) ->
 
 
 class Renderer:
-    """Ray-cast ``rgb8`` images of ``target`` seen by ``camera``.
+    """
+    Ray-cast ``rgb8`` images of ``target`` seen by ``camera``.
 
     camera      true intrinsics (a model with plumb_bob distortion is rendered distorted).
     target      :class:`~sphere_servo.core.targets.Target` (special, CC or balloon).
@@ -176,9 +152,14 @@ class Renderer:
 
     # --- ray casting ---------------------------------------------------------------------
     def _trace(self, x: np.ndarray, y: np.ndarray, cMo: pin.SE3):
-        """Trace rays ``(x, y, 1)`` (normalized coordinates; ``x``, ``y`` broadcastable
-        arrays, e.g. a (1, w) row and an (h, 1) column). Returns ``(label uint8, rgb
-        float32 (..., 3))`` of the broadcast shape; rgb is 0 where label is MISS."""
+        """
+        Trace rays ``(x, y, 1)`` (normalized coordinates).
+
+        ``x``, ``y``: broadcastable arrays, e.g. a (1, w) row and an (h, 1) column. Returns
+        ``(label uint8, f float32)`` of the broadcast shape: what each ray hits first and
+        its brightness ``gain · (ambient + diffuse · max(0, n·l))`` (meaningless where the
+        label is MISS).
+        """
         R = np.asarray(cMo.rotation)
         t = np.asarray(cMo.translation, dtype=float)
         light = self.light_dir / np.linalg.norm(self.light_dir)
@@ -236,14 +217,18 @@ class Renderer:
         return label, f
 
     def _trace_cc(self, x, y, cMo, label, depth, shade):
-        """Depth-tested stick (cylinder P1→P3) and tip ball at P3 of the CC target, in the
-        camera frame. ``depth`` is the parameter s of the camera ray ``s (x, y, 1)`` at the
-        body hit (∞ on a miss). Returns the updated ``(label, shade)``.
+        """
+        Trace the stick (cylinder P1→P3) and the tip ball at P3 of the CC target.
+
+        Depth-tested, in the camera frame: ``depth`` is the parameter s of the camera ray
+        ``s (x, y, 1)`` at the body hit (∞ on a miss). Returns the updated
+        ``(label, shade)``.
 
         On the separable pixel grid (``x`` a (1, w) row, ``y`` an (h, 1) column) each part is
         traced only in its own image box: the tip ball's silhouette box, and for the stick
         the box of its two end balls of the stick's radius (the cylinder lies in their
-        convex hull, whose image lies in the hull of theirs)."""
+        convex hull, whose image lies in the hull of theirs).
+        """
         A = np.asarray(cMo.act(self.target.oP1), dtype=float)
         B = np.asarray(cMo.act(self.target.oP2), dtype=float)
         light = self.light_dir / np.linalg.norm(self.light_dir)
@@ -264,14 +249,18 @@ class Renderer:
 
     @staticmethod
     def _window(x, y, balls):
-        """(rows, cols) slices of the separable grid ``x`` (1, w), ``y`` (h, 1) whose rays can
-        meet one of ``balls`` [(centre in the camera frame, radius)], None if none can, the
-        whole grid if a ball is not entirely in front of the camera."""
+        """
+        Find the window of the pixel grid whose rays can meet one of ``balls``.
+
+        ``balls``: [(centre in the camera frame, radius)]; the grid is separable, ``x``
+        (1, w), ``y`` (h, 1). Returns (rows, cols) slices, None if no ray can meet a ball,
+        the whole grid if a ball is not entirely in front of the camera.
+        """
         boxes = []
         for c, rad in balls:
             if c[2] <= rad * 1.0001:
                 return slice(None), slice(None)
-            box = conic_bbox(ball_silhouette(c, rad))
+            box = conic_bbox(sphere_silhouette(c, rad))
             if box is None:
                 return slice(None), slice(None)
             boxes.append(box)
@@ -286,8 +275,12 @@ class Renderer:
         return slice(r0, r1), slice(c0, c1)
 
     def _trace_tip(self, x, y, A, B, light, label, shade, depth):
-        """Tip ball ``|s d − B|² = ρ²``: writes TIP, its shade and depth where it is the
-        nearest surface (``label``, ``shade``, ``depth``: views, updated in place)."""
+        """
+        Trace the tip ball ``|s d − B|² = ρ²``.
+
+        Writes TIP, its shade and depth where it is the nearest surface (``label``,
+        ``shade``, ``depth``: views, updated in place).
+        """
         rho = self.tip_radius
         B0, B1, B2 = B.tolist()
         lx, ly, lz = light.tolist()
@@ -302,8 +295,11 @@ class Renderer:
         depth[on] = np.broadcast_to(s, on.shape)[on]
 
     def _trace_stick(self, x, y, A, B, light, label, shade, depth):
-        """Stick: the cylinder of axis ``A + σ w``, radius ρ, clipped to σ ∈ [0, L] (same
-        in-place contract as :meth:`_trace_tip`)."""
+        """
+        Trace the stick: the cylinder of axis ``A + σ w``, radius ρ, σ ∈ [0, L].
+
+        Same in-place contract as :meth:`_trace_tip`.
+        """
         w = B - A
         L = np.linalg.norm(w)
         w = w / L
@@ -327,11 +323,14 @@ class Renderer:
 
     # --- image -----------------------------------------------------------------------
     def _bbox(self, cMo: pin.SE3):
-        """Pixel box ``(u0, u1, v0, v1)`` (half-open, clipped) that contains the target's
-        image, or ``None`` if nothing is visible; the whole image when the bounding sphere
-        is not entirely in front of the camera."""
-        O = np.asarray(cMo.translation, dtype=float)
-        parts = [(O, self._bound_radius)]
+        """
+        Find the pixel box ``(u0, u1, v0, v1)`` (half-open, clipped) of the target's image.
+
+        ``None`` if nothing is visible; the whole image when the bounding sphere is not
+        entirely in front of the camera.
+        """
+        cO = np.asarray(cMo.translation, dtype=float)
+        parts = [(cO, self._bound_radius)]
         if self.target.kind == CC:
             parts.append((cMo.act(self.target.oP2), self.tip_radius))
             parts += [(cMo.act(self.target.oP1 + f * (self.target.oP2 - self.target.oP1)),
@@ -348,8 +347,9 @@ class Renderer:
                 if c[2] + rad <= 0:
                     continue          # entirely behind the camera
                 return full
-            Kinv = self.camera.K_inv
-            bb = conic_bbox(Kinv.T @ ball_silhouette(c, rad) @ Kinv)
+            cam = self.camera
+            bb = conic_bbox(conic_normalized_to_pixels(sphere_silhouette(c, rad), cam.px,
+                                                       cam.py, cam.u0, cam.v0))
             if bb is None:
                 return full
             boxes.append(bb)
@@ -366,8 +366,11 @@ class Renderer:
         return u0, u1, v0, v1
 
     def render(self, cMo: pin.SE3) -> np.ndarray:
-        """(H, W, 3) uint8 ``rgb8`` image of the target at pose ``cMo`` (target frame in the
-        camera optical frame)."""
+        """
+        Render the (H, W, 3) uint8 ``rgb8`` image of the target at pose ``cMo``.
+
+        ``cMo``: the target frame in the camera optical frame (a ``pin.SE3``).
+        """
         if not isinstance(cMo, pin.SE3):
             raise TypeError(f'cMo must be a pinocchio.SE3, got {type(cMo).__name__}')
         if not (np.all(np.isfinite(cMo.translation)) and np.all(np.isfinite(cMo.rotation))):

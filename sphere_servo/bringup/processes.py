@@ -1,0 +1,160 @@
+"""
+The launcher's processes: start the pipeline's nodes, watch them, stop them in order.
+
+Each node of the scenario starts with ``--ros-args`` and every params file of the scenario,
+in order (``--params-file A --params-file B``: B overrides what it sets), as the launch file
+starts them. Executables are resolved as ``ros2 run`` does
+(``get_package_prefix('sphere_servo')/lib/sphere_servo/<name>``), falling back to
+``python -m sphere_servo.ros.<name>`` when the package is not installed (a source
+checkout). Each process's output is forwarded with a ``[name]`` prefix. :meth:`Launcher.stop`
+stops the servo first (its last word is a zero twist), then the recorder (while the others
+still live: it takes what is still on its way before closing the bag), then the others:
+SIGINT, then SIGKILL after 10 s. On Linux the nodes are terminated (SIGTERM) if the
+launcher itself dies, even by SIGKILL (``PR_SET_PDEATHSIG``); the kernel ties this to the
+thread that started them, so start a :class:`Launcher` from a thread that outlives the run.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+from sphere_servo.pipeline.config import ConfigError, package_prefix, Scenario
+
+MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
+           'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
+           'record': 'sphere_servo.bag.record'}
+STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
+
+
+class LaunchError(ConfigError):
+    """The config, an executable or the run cannot be used."""
+
+
+def node_command(name: str) -> list[str]:
+    """How ``ros2 run sphere_servo <name>`` would start it, or ``python -m`` from source."""
+    prefix = package_prefix()
+    if prefix is not None:
+        exe = prefix / 'lib' / 'sphere_servo' / name
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return [str(exe)]
+    if name not in MODULES:
+        raise LaunchError(f'unknown node {name!r}')
+    return [sys.executable, '-m', MODULES[name]]
+
+
+def interrupt(popen: subprocess.Popen, timeout: float = 10.0) -> int:
+    """Stop a process as Ctrl-C does (SIGINT), SIGKILL it after ``timeout`` s; exit code."""
+    if popen.poll() is None:
+        popen.send_signal(signal.SIGINT)
+        try:
+            popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            popen.kill()
+            popen.wait(5)
+    return popen.returncode
+
+
+def _libc():
+    """Load libc for prctl, once in the launcher (the forked child must not load it)."""
+    try:
+        import ctypes
+        return ctypes.CDLL(None, use_errno=True)
+    except (OSError, AttributeError):
+        return None
+
+
+_LIBC = _libc() if sys.platform.startswith('linux') else None
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with(parent_pid: int):
+    """
+    Return the ``preexec_fn`` of a node (Linux) that dies with the launcher.
+
+    The kernel sends the node SIGTERM when the launcher dies, even by SIGKILL, so no
+    orphaned node keeps driving the arm (SIGTERM is the nodes' clean shutdown: the servo's
+    last word is a zero twist). If the launcher died before this ran, the node is
+    terminated at once.
+    """
+    libc = _LIBC
+
+    def preexec():
+        if libc is not None:
+            libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+            if os.getppid() != parent_pid:
+                os.kill(os.getpid(), signal.SIGTERM)
+    return preexec
+
+
+@dataclass
+class Child:
+    name: str
+    popen: subprocess.Popen
+    thread: threading.Thread | None = None
+
+
+def _forward(name: str, stream, out) -> None:
+    for line in iter(stream.readline, ''):
+        out.write(f'[{name}] {line}' if line.endswith('\n') else f'[{name}] {line}\n')
+        out.flush()
+    stream.close()
+
+
+def ros_args(scenario: Scenario) -> list[str]:
+    """Return ``--ros-args --params-file F …`` of the scenario's params files, in order."""
+    args = ['--ros-args']
+    for path in scenario.params_files:
+        args += ['--params-file', str(path)]
+    return args
+
+
+@dataclass
+class Launcher:
+    """Starts, watches and stops the nodes of a scenario."""
+
+    scenario: Scenario
+    out: object = sys.stdout
+    env: dict | None = None  # the children's environment (default: this process's)
+    children: dict = field(default_factory=dict)
+
+    def start(self, extra: dict | None = None) -> None:
+        """Start every node of the scenario (``extra``: name → argv of other executables)."""
+        for name in self.scenario.nodes:
+            self._spawn(name, node_command(name) + ros_args(self.scenario))
+        for name, argv in (extra or {}).items():
+            self._spawn(name, node_command(name) + list(argv))
+
+    def restart(self, name: str) -> None:
+        """Start ``name`` again with the same parameters (after it died or was killed)."""
+        old = self.children[name]
+        if old.popen.poll() is None:
+            raise LaunchError(f'{name} is still running')
+        self._spawn(name, node_command(name) + ros_args(self.scenario))
+
+    def _spawn(self, name: str, cmd: list[str]) -> None:
+        env = dict(self.env if self.env is not None else os.environ, PYTHONUNBUFFERED='1')
+        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 text=True, env=env, start_new_session=True,
+                                 preexec_fn=_die_with(os.getpid()))
+        t = threading.Thread(target=_forward, args=(name, popen.stdout, self.out), daemon=True)
+        t.start()
+        self.children[name] = Child(name, popen, t)
+
+    def dead(self) -> list[str]:
+        """Names of nodes that have exited."""
+        return [n for n, c in self.children.items() if c.popen.poll() is not None]
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        """Stop every node (servo first), SIGINT then SIGKILL; return the exit codes."""
+        order = [n for n in STOP_ORDER if n in self.children] + \
+            [n for n in self.children if n not in STOP_ORDER]
+        for name in order:
+            interrupt(self.children[name].popen, timeout)
+        for c in self.children.values():
+            if c.thread is not None:
+                c.thread.join(2)
+        return {n: c.popen.returncode for n, c in self.children.items()}

@@ -1,0 +1,485 @@
+"""
+The interface of a central camera model, and the distortion algebra the models share.
+
+A central camera (one projection centre, DESIGN.md §1: optical frame z forward, x right,
+y down) images a ray — a point ``P`` of the camera frame, at any positive scale — at the pixel
+
+    (u, v) = (px·x_d + u0, py·y_d + v0)
+
+where ``m_d = (x_d, y_d)`` is the *distorted normalized* point the model computes from the
+ray (pinhole: ``x̄ = P/Z`` then plumb_bob; fisheye: Kannala–Brandt; unified: Mei), pixels
+with (0, 0) the centre of the top-left pixel. :class:`CentralCamera` is the interface every
+model offers (a mixin for frozen dataclasses with fields ``px, py, u0, v0, width, height``):
+
+- ``lift(uv)``            (N, 2) pixels → (N, 3) unit rays ``q`` on the projection sphere
+- ``lift_where(uv)``      the same without refusing: NaN rays where ``ok`` is False
+- ``project(P)``          (N, 3) rays or points → (N, 2) pixels
+- ``project_jacobian(P)`` (N, 2, 3) ``∂(u, v)/∂P``; ``lift_jacobian(uv)`` (N, 3, 2) ``∂q/∂(u, v)``
+- ``valid(P)``            (N,) which rays the model images; ``max_angle`` the half-angle
+  of that field from the optical axis (rad); ``in_image``, ``width``, ``height``
+- ``with_error(px, py, u0, v0)``  the same model with relative intrinsics errors
+
+``project`` and ``lift`` refuse (:class:`GeometryError`) a ray outside the valid field or a
+pixel no valid ray reaches, instead of returning a folded or extrapolated answer. The
+models are radially symmetric up to tangential terms: along a radius, the distorted radius
+is an increasing function of the ray's angle up to the field's edge, where the function
+either ends naturally (a point at infinity, the fisheye's 180°, the unified model's limit
+circle) or stops increasing (a *fold* of the distortion polynomial, beyond which the model
+is not invertible). With tangential terms the field can end slightly nearer than
+``max_angle`` (the radial field) in some directions; ``valid`` tells exactly.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import lru_cache
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.types import Points2, Points3
+from sphere_servo.core.validation import Bound, check_number, check_range, refuse, Violation
+
+_EPS = float(np.finfo(float).eps)
+_AXIS = np.array([0.0, 0.0, 1.0])
+
+#: largest image side (px): the largest sensors are ~20 000 px wide; CameraInfo's uint32
+#: would allow 4·10⁹, and a buffer that size cannot exist
+MAX_IMAGE_SIDE = 100_000
+#: focal lengths (px) relative to the image's larger side S: at 0.01 S a pinhole sees
+#: ±88.9° across the image and a fisheye puts its whole 180° into 1.6 % of it; at 10⁴ S
+#: the image spans 0.006°, beyond any telescope on a camera. Outside, K is corrupt.
+FOCAL_RATIO_MIN, FOCAL_RATIO_MAX = 1e-2, 1e4
+#: the principal point within this many image sizes of the image (a crop moves it off the
+#: centre, by a fraction of the image; farther is a corrupt K)
+PRINCIPAL_POINT_MARGIN = 1.0
+
+
+class CameraError(GeometryError):
+    """Camera parameters that no camera has, or a camera unusable for the given image."""
+
+
+class Lifted(NamedTuple):
+    """Rays of :meth:`CentralCamera.lift_where`: (N, 3) unit rays, NaN where not ``ok``."""
+
+    rays: Points3
+    ok: np.ndarray
+
+
+# --- odd radial polynomials f(x) = x (1 + c1 x² + c2 x⁴ + …) ------------------------------
+def odd_poly(coeffs, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Evaluate ``f(x) = x (1 + c1 x² + c2 x⁴ + …)`` and ``f'(x)`` (Horner, vectorised)."""
+    s = x * x
+    q = np.zeros_like(s)
+    dq = np.zeros_like(s)
+    for k in range(len(coeffs), 0, -1):            # Horner in s = x², from the top
+        q = q * s + coeffs[k - 1]
+        dq = dq * s + (2 * k + 1) * coeffs[k - 1]
+    p, dp = q * s, dq * s
+    return x * (1.0 + p), 1.0 + dp
+
+
+def first_fold(coeffs) -> float:
+    """
+    Return the fold of :func:`odd_poly`, the radius where it stops increasing.
+
+    That is the smallest ``x > 0`` where ``f'(x) = 1 + Σ (2k+1) c_k x^(2k)`` vanishes,
+    ``inf`` if it never does.
+    """
+    poly = [(2 * k + 1) * float(c) for k, c in reversed(list(enumerate(coeffs, start=1)))]
+    poly.append(1.0)
+    while poly and poly[0] == 0.0:
+        poly.pop(0)
+    if len(poly) < 2:
+        return math.inf
+    roots = np.roots(poly)                         # in s = x²
+    real = roots.real[(np.abs(roots.imag) <= 1e-9 * np.abs(roots)) & (roots.real > 0)]
+    return math.sqrt(float(real.min())) if real.size else math.inf
+
+
+@lru_cache(maxsize=64)
+def _table(coeffs: tuple, top: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Tabulate ``x``, ``f(x)`` and ``f'(x)`` on ``[0, top]``.
+
+    Uniform up to 1, geometric beyond: the radius of a wide field spans decades.
+    """
+    xg = (np.linspace(0.0, top, 257) if top <= 2.0 else
+          np.concatenate([np.linspace(0.0, 1.0, 129)[:-1], np.geomspace(1.0, top, 129)]))
+    return (xg, *odd_poly(coeffs, xg))
+
+
+def solve_odd_poly(coeffs, t: np.ndarray, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Solve ``f(x) = t`` (:func:`odd_poly`) for ``x`` in ``[0, hi)``, where f increases.
+
+    ``hi`` is at most the first fold (``inf`` if none). Returns ``(x, ok)``; ``ok`` is False
+    where ``t`` is not finite, negative, or ≥ ``f(hi)`` (no solution in the increasing
+    branch). Initial guess from a table of ``f`` on ``[0, hi]`` (``[0, 2ᵏ]`` with
+    ``f(2ᵏ) ≥ max t`` if ``hi`` is infinite) by cubic Hermite interpolation of the inverse,
+    then Newton steps kept inside the table interval that brackets the root (bisection when a
+    step leaves it), on the points not yet converged.
+    """
+    t = np.asarray(t, dtype=float)
+    ok = np.isfinite(t) & (t >= 0)
+    t = np.where(ok, t, 0.0)
+    coeffs = tuple(float(c) for c in coeffs)
+    if not any(coeffs):
+        return t, ok & (t < hi)
+    top = hi
+    if math.isinf(hi):                             # f → ∞: widen until f(top) ≥ max t
+        tmax = float(t.max(initial=0.0))
+        top = 2.0 ** math.ceil(math.log2(max(1.0, tmax)))
+        while odd_poly(coeffs, np.array([top]))[0][0] < tmax:
+            top *= 2.0
+    xg, fg, dg = _table(coeffs, top)
+    if math.isfinite(hi):
+        ok &= t < fg[-1]
+        t = np.where(ok, t, 0.0)
+    j = np.clip(np.searchsorted(fg, t, side='right'), 1, len(xg) - 1)
+    lo, up = xg[j - 1], xg[j]
+    # x(t) on [f_j-1, f_j] by cubic Hermite (slopes 1/f'), clipped into the bracket
+    h = fg[j] - fg[j - 1]
+    s = (t - fg[j - 1]) / h
+    m0, m1 = h / dg[j - 1], h / np.maximum(dg[j], 1e-300)
+    x = (lo * (1 + 2 * s) * (1 - s) ** 2 + m0 * s * (1 - s) ** 2
+         + up * s * s * (3 - 2 * s) + m1 * s * s * (s - 1))
+    x = np.minimum(np.maximum(x, lo), up)
+    live = None                                    # all points, until some converge
+    for _ in range(60):
+        xa, ta, la, ua = (x, t, lo, up) if live is None else (x[live], t[live], lo[live],
+                                                              up[live])
+        f, df = odd_poly(coeffs, xa)
+        r = f - ta
+        la = np.where(r < 0, xa, la)
+        ua = np.where(r > 0, xa, ua)
+        xn = xa - np.divide(r, df, out=np.full_like(r, np.inf), where=df > 0)
+        xn = np.where((xn >= la) & (xn <= ua), xn, 0.5 * (la + ua))
+        done = ((np.abs(xn - xa) <= 4 * _EPS * xa)     # converged, or f(x) = t to
+                | (np.abs(r) <= 8 * _EPS * ta))        # rounding (f' ≈ 0 at a fold)
+        if live is None:
+            x, lo, up = xn, la, ua
+            live = np.flatnonzero(~done)
+        else:
+            x[live], lo[live], up[live] = xn, la, ua
+            live = live[~done]
+        if not live.size:
+            break
+    else:
+        ok[live] = False
+    return x, ok
+
+
+# --- radial-tangential distortion (plumb_bob; Mei's k1 k2 p1 p2 with k3 = 0) ----------------
+def radtan(m: Points2, k1, k2, p1, p2, k3) -> tuple[Points2, np.ndarray]:
+    """
+    Distort normalized points ``m`` (N, 2); return ``m_d`` and the Jacobian ``∂m_d/∂m``.
+
+    The radial-tangential model, in OpenCV's and ROS plumb_bob's order:
+    ``m_d = m (1 + k1 r² + k2 r⁴ + k3 r⁶) + (2 p1 x y + p2 (r² + 2x²),
+    p1 (r² + 2y²) + 2 p2 x y)``, ``r² = x² + y²``; the Jacobian is (N, 2, 2).
+    """
+    x, y = m[:, 0], m[:, 1]
+    x2, y2, xy = x * x, y * y, x * y
+    r2 = x2 + y2
+    L = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dL = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)      # dL/d(r²)
+    md = np.empty_like(m)
+    md[:, 0] = x * L + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x2)
+    md[:, 1] = y * L + p1 * (r2 + 2.0 * y2) + 2.0 * p2 * xy
+    J = np.empty((len(m), 2, 2))
+    J[:, 0, 0] = L + 2.0 * x2 * dL + 2.0 * p1 * y + 6.0 * p2 * x
+    J[:, 0, 1] = J[:, 1, 0] = 2.0 * xy * dL + 2.0 * p1 * x + 2.0 * p2 * y
+    J[:, 1, 1] = L + 2.0 * y2 * dL + 6.0 * p1 * y + 2.0 * p2 * x
+    return md, J
+
+
+def det2(J: np.ndarray) -> np.ndarray:
+    """Return the determinants of (N, 2, 2) matrices."""
+    return J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+
+
+def undistort_radtan(md: Points2, coeffs, hi: float) -> tuple[Points2, np.ndarray]:
+    """
+    Invert :func:`radtan` (coeffs ``k1 k2 p1 p2 k3``) on its increasing branch ``r < hi``.
+
+    The radial part exactly (:func:`solve_odd_poly`), then damped Newton on the tangential
+    terms (from just inside ``hi`` where the tangential shift carries the point beyond the
+    radial part's range). Returns ``(m, ok)``; ``ok`` is False where no such inverse exists
+    or Newton did not converge to a point where the distortion is one-to-one
+    (``det ∂m_d/∂m > 0``).
+    """
+    k1, k2, p1, p2, k3 = coeffs
+    rd = np.hypot(md[:, 0], md[:, 1])
+    r, ok = solve_odd_poly((k1, k2, k3), rd, hi)
+    if p1 == 0.0 and p2 == 0.0:
+        with np.errstate(divide='ignore', invalid='ignore'):
+            return md * np.where(rd > 0, r / rd, 1.0)[:, None], ok
+    if math.isfinite(hi):
+        r = np.where(ok, r, (1.0 - 1e-3) * hi)
+    ok = np.isfinite(rd)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        m = np.where(ok[:, None], md * np.where(rd > 0, r / rd, 1.0)[:, None], 0.0)
+    live = np.flatnonzero(ok)
+    mm, tg = m[live], md[live]
+    f, J = radtan(mm, *coeffs)
+    res = f - tg
+    err = np.hypot(res[:, 0], res[:, 1])
+    for _ in range(40):
+        with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+            step = np.column_stack([J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1],
+                                    J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]])
+            step /= det2(J)[:, None]
+        step[~np.isfinite(step)] = 0.0
+        mn = mm - step
+        fn, Jn = radtan(mn, *coeffs)
+        resn = fn - tg
+        errn = np.hypot(resn[:, 0], resn[:, 1])
+        for _ in range(12):                          # halve the steps that do not reduce |res|
+            w = np.flatnonzero(errn > err)
+            if not w.size:
+                break
+            step[w] *= 0.5
+            mn[w] = mm[w] - step[w]
+            fn[w], Jn[w] = radtan(mn[w], *coeffs)
+            resn[w] = fn[w] - tg[w]
+            errn[w] = np.hypot(resn[w, 0], resn[w, 1])
+        done = ((np.hypot(step[:, 0], step[:, 1]) <= 8 * _EPS * (1.0 + np.hypot(*mn.T)))
+                | (errn <= 2 * _EPS * (1.0 + np.hypot(*tg.T))))
+        m[live] = mn
+        keep = ~done
+        live, mm, tg = live[keep], mn[keep], tg[keep]
+        J, res, err = Jn[keep], resn[keep], errn[keep]
+        if not live.size:
+            break
+    f, J = radtan(m, *coeffs)
+    err = np.hypot(*(f - md).T)
+    ok &= (err <= 1e-12 * (1.0 + rd)) & (det2(J) > 0) & (np.hypot(m[:, 0], m[:, 1]) < hi)
+    return m, ok
+
+
+# --- the interface ---------------------------------------------------------------------------
+class CentralCamera:
+    """
+    Mixin: lift, project, their Jacobians and the field of a central camera model.
+
+    A model implements ``_distort_rays(P, jacobian) -> (m_d, ok, J)`` (distorted normalized
+    points of (N, 3) points, the valid-field mask and, if asked, ``∂m_d/∂P`` (N, 2, 3)),
+    ``_undistort(m_d) -> Lifted``, ``max_angle``, ``_radial_limit() -> (radius, is_fold)``
+    (the distorted radius where the field ends along a radius, and whether it ends at a
+    distortion fold) and ``_has_tangential``.
+    """
+
+    # --- pixels ↔ distorted normalized ----------------------------------------------------
+    def _md(self, uv: np.ndarray) -> Points2:
+        return np.column_stack([(uv[:, 0] - self.u0) / self.px, (uv[:, 1] - self.v0) / self.py])
+
+    @property
+    def K(self) -> np.ndarray:
+        """3×3 matrix of the focal lengths and principal point (pixels)."""
+        return np.array([[self.px, 0.0, self.u0], [0.0, self.py, self.v0], [0.0, 0.0, 1.0]])
+
+    def in_image(self, uv: Points2, margin: float = 0.0) -> np.ndarray:
+        """(N,) bool: pixel inside the image, ``margin`` pixels from the border."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        return ((uv[:, 0] >= -0.5 + margin) & (uv[:, 0] <= self.width - 0.5 - margin)
+                & (uv[:, 1] >= -0.5 + margin) & (uv[:, 1] <= self.height - 0.5 - margin))
+
+    def with_error(self, px: float = 0.0, py: float = 0.0, u0: float = 0.0,
+                   v0: float = 0.0):
+        """
+        Return the model with intrinsics off by *relative* errors (``px=0.35``: +35 %).
+
+        Raises :class:`CameraError` naming the error parameter when the errors make the
+        camera impossible: not finite, a focal length ``px·(1 + e) ≤ 0`` (``e ≤ −1``), or
+        intrinsics outside the bounds of :meth:`_check_intrinsics`.
+        """
+        errors = {'px': px, 'py': py, 'u0': u0, 'v0': v0}
+        for name, e in errors.items():
+            e = errors[name] = check_number(CameraError, f'intrinsics error {name}', e)
+            if name in ('px', 'py') and not e > -1.0:
+                refuse(CameraError, f'intrinsics error {name}', e, Bound.RANGE,
+                       f'> −1, so that the focal length {name}·(1 + e) stays > 0')
+        try:
+            return replace(self, **{n: getattr(self, n) * (1.0 + e) for n, e in errors.items()})
+        except CameraError as exc:  # say which error parameter made it impossible
+            v = exc.violation
+            if v is None:
+                raise
+            named = ([v.quantity] if v.quantity in errors else
+                     [n for n, e in errors.items() if e != 0.0])
+            cause = ', '.join(f'{n} = {errors[n]!r}' for n in named)
+            raise CameraError(Violation(f'{v.quantity} with intrinsics error {cause}',
+                                        v.value, v.bound, v.limit)) from None
+
+    # --- the parameters' bounds -----------------------------------------------------------
+    def _check_intrinsics(self, coefficients: dict) -> None:
+        """
+        Refuse (:class:`CameraError`) intrinsics that no camera has.
+
+        Every value finite (the distortion ``coefficients`` too, by name); the image size
+        ``1 ≤ width, height ≤ MAX_IMAGE_SIDE``; focal lengths > 0 and within
+        ``[FOCAL_RATIO_MIN, FOCAL_RATIO_MAX] × max(width, height)`` (so ``fx = 1e300`` is
+        refused here, not left to overflow in a projection).
+        """
+        for name in ('px', 'py', 'u0', 'v0'):
+            check_number(CameraError, name, getattr(self, name))
+        for name, c in coefficients.items():
+            check_number(CameraError, name, c)
+        for name in ('width', 'height'):
+            n = check_number(CameraError, name, getattr(self, name))
+            if not (1 <= n <= MAX_IMAGE_SIDE and n == int(n)):
+                refuse(CameraError, name, getattr(self, name), Bound.RANGE,
+                       f'image size must be a whole number of pixels in [1, {MAX_IMAGE_SIDE}]')
+        side = max(int(self.width), int(self.height))
+        lo, hi = FOCAL_RATIO_MIN * side, FOCAL_RATIO_MAX * side
+        for name in ('px', 'py'):
+            f = getattr(self, name)
+            if not f > 0:
+                refuse(CameraError, name, f, Bound.RANGE, 'focal lengths must be > 0')
+            if not lo <= f <= hi:
+                refuse(CameraError, name, f, Bound.RANGE,
+                       f'focal lengths must be within [{FOCAL_RATIO_MIN:g}, '
+                       f'{FOCAL_RATIO_MAX:g}] × max(width, height) = [{lo:g}, {hi:g}] px')
+
+    def _check_principal_point(self) -> None:
+        """
+        Refuse a principal point farther than ``PRINCIPAL_POINT_MARGIN`` image sizes out.
+
+        That is ``−m·W ≤ u0 ≤ (1 + m)·W`` and the same for ``v0`` with H (:class:`CameraError`).
+        """
+        m = PRINCIPAL_POINT_MARGIN
+        for name, size in (('u0', self.width), ('v0', self.height)):
+            check_range(CameraError, name, getattr(self, name), -m * size, (1.0 + m) * size)
+
+    # --- rays ↔ pixels --------------------------------------------------------------------
+    @staticmethod
+    def _scaled(P: Points3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Scale rays to ``max |P_i| = 1``: a ray's scale is free, and then nothing overflows.
+
+        Returns the scaled rays, the scales, and which rows are finite and non-zero (the
+        others become the optical axis, to be refused by the caller).
+        """
+        s = np.abs(P).max(axis=1, initial=0.0)
+        good = np.isfinite(s) & (s > 0)
+        s = np.where(good, s, 1.0)
+        return np.where(good[:, None], P / s[:, None], _AXIS), s, good
+
+    def valid(self, P: Points3) -> np.ndarray:
+        """Tell which rays (points, any positive scale) the model images one-to-one, (N,)."""
+        Pn, _, good = self._scaled(np.asarray(P, dtype=float).reshape(-1, 3))
+        return self._distort_rays(Pn, False)[1] & good
+
+    def _refuse_outside(self, P: Points3, ok: np.ndarray) -> None:
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            raise GeometryError(f'{(~ok).sum()} of {len(P)} rays are outside the field of the '
+                                f'{type(self).__name__} (max {math.degrees(self.max_angle):.1f}° '
+                                f'from the axis), e.g. {P[i].tolist()}')
+
+    def _projected(self, P, jacobian: bool):
+        P = np.asarray(P, dtype=float).reshape(-1, 3)
+        Pn, scale, good = self._scaled(P)
+        md, ok, J = self._distort_rays(Pn, jacobian)
+        self._refuse_outside(P, ok & good)
+        uv = np.column_stack([self.px * md[:, 0] + self.u0, self.py * md[:, 1] + self.v0])
+        if not jacobian:
+            return uv
+        J = J / scale[:, None, None]             # proj(P) = proj(P/s): ∂/∂P = J(P/s)/s
+        J[:, 0] *= self.px
+        J[:, 1] *= self.py
+        return uv, J
+
+    def project(self, P: Points3) -> Points2:
+        """
+        Project (N, 3) rays or points of the camera optical frame to (N, 2) pixels.
+
+        Raises :class:`GeometryError` if any ray is outside the field (:meth:`valid`).
+        """
+        return self._projected(P, False)
+
+    def project_jacobian(self, P: Points3) -> np.ndarray:
+        """Return ``∂(u, v)/∂P`` (N, 2, 3) at (N, 3) points (``J P = 0``: scale is free)."""
+        return self._projected(P, True)[1]
+
+    def lift_where(self, uv: Points2) -> Lifted:
+        """
+        Lift (N, 2) pixels to :class:`Lifted` unit rays, without refusing.
+
+        The rays are NaN and ``ok`` False where no valid ray reaches the pixel (outside the
+        image circle, beyond a fold, a NaN pixel).
+        """
+        md = self._md(np.asarray(uv, dtype=float).reshape(-1, 2))
+        fin = np.isfinite(md).all(axis=1) & (np.abs(md).max(axis=1, initial=0.0) < 1e150)
+        q, ok = self._undistort(np.where(fin[:, None], md, 0.0))
+        ok &= fin
+        q[~ok] = np.nan
+        return Lifted(q, ok)
+
+    def lift(self, uv: Points2) -> Points3:
+        """
+        Lift (N, 2) pixels to (N, 3) unit rays ``q`` on the projection sphere.
+
+        Raises :class:`GeometryError` if a pixel is not the image of a ray in the field.
+        """
+        q, ok = self.lift_where(uv)
+        if not ok.all():
+            uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+            i = int(np.flatnonzero(~ok)[0])
+            raise GeometryError(f'{(~ok).sum()} of {len(ok)} pixels are not the image of a ray '
+                                f'in the field of the {type(self).__name__}, e.g. '
+                                f'{uv[i].tolist()}')
+        return q
+
+    def lift_jacobian(self, uv: Points2) -> np.ndarray:
+        """
+        Return ``∂q/∂(u, v)`` (N, 3, 2) of :meth:`lift`.
+
+        ``q`` is unit and ``project(q) = uv``, so with ``J = ∂(u, v)/∂P`` at ``q`` (null
+        vector ``q``) the derivative is ``Jᵀ (J Jᵀ)⁻¹``, the right inverse orthogonal to ``q``.
+        """
+        J = self.project_jacobian(self.lift(uv))
+        A = J @ J.transpose(0, 2, 1)
+        d = det2(A)
+        inv = np.empty_like(A)
+        inv[:, 0, 0], inv[:, 1, 1] = A[:, 1, 1] / d, A[:, 0, 0] / d
+        inv[:, 0, 1], inv[:, 1, 0] = -A[:, 0, 1] / d, -A[:, 1, 0] / d
+        return J.transpose(0, 2, 1) @ inv
+
+    # --- the field inside the image -------------------------------------------------------
+    def _check_unfolded(self) -> None:
+        """
+        Raise :class:`CameraError` if the distortion folds inside the image.
+
+        That is: a pixel inside the model's natural field that no valid ray reaches. Also
+        refused: an image that sees no ray at all.
+        """
+        W, H = self.width - 0.5, self.height - 0.5
+        cu = np.array([-0.5, W, W, -0.5])
+        cv = np.array([-0.5, -0.5, H, H])
+        far = float(np.hypot((cu - self.u0) / self.px, (cv - self.v0) / self.py).max())
+        near = math.hypot((min(max(self.u0, -0.5), W) - self.u0) / self.px,
+                          (min(max(self.v0, -0.5), H) - self.v0) / self.py)
+        limit, is_fold = self._radial_limit()
+        name = type(self).__name__
+        if near >= limit:
+            refuse(CameraError, f'{name} field', self, Bound.FIELD,
+                   f'no pixel of the {self.width}x{self.height} image is in the field of the '
+                   'model')
+        if is_fold and far >= limit:
+            refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
+                   f'the distortion folds inside the image (it stops increasing at '
+                   f'{math.degrees(self.max_angle):.1f}° from the axis, a distorted radius '
+                   f'{limit:.4g} < {far:.4g} at the farthest corner): not invertible')
+        if self._has_tangential:
+            u, v = np.meshgrid(np.linspace(-0.5, W, 65), np.linspace(-0.5, H, 49))
+            uv = np.column_stack([u.ravel(), v.ravel()])
+            md = self._md(uv)
+            inside = np.hypot(md[:, 0], md[:, 1]) < 0.99 * limit
+            ok = self.lift_where(uv[inside]).ok
+            if not ok.all():
+                refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
+                       'the tangential distortion folds inside the image near pixel '
+                       f'{uv[inside][~ok][0].tolist()}')

@@ -1,0 +1,124 @@
+"""
+The detector's logic without ROS: camera_info → the camera, an image buffer → a detection.
+
+:class:`DetectorCore` holds the camera of the latest usable ``camera_info`` (its true
+intrinsics with ``intrinsics_error`` applied: relative errors (px, py, u0, v0), the paper's
+calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``) and runs the vision layer's
+:class:`~sphere_servo.vision.detector.Detector` on each image. A bad image (unsupported
+encoding, ``step``/``data`` lengths that disagree, zero size) or a missing camera is
+*rejected*: the result says why, and its measurement is empty (target lost, so the servo
+stops). :meth:`DetectorCore.status` is the node's status: the latest image's outcome.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.targets import make_target
+from sphere_servo.core.types import Image
+from sphere_servo.pipeline.common import Level, NodeStatus, Refusal
+from sphere_servo.pipeline.params import DetectorParams
+from sphere_servo.pipeline.vectors import Measurement
+from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
+
+
+def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[float] | None,
+                     intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.0),
+                     ) -> CameraIntrinsics | Refusal:
+    """Return the camera of camera_info fields with ``intrinsics_error`` applied, or why not."""
+    try:
+        cam = CameraIntrinsics.from_camera_info_fields(width, height, k, d)
+        ex, ey, eu, ev = intrinsics_error
+        return cam.with_error(px=ex, py=ey, u0=eu, v0=ev)
+    except ValueError as exc:
+        return Refusal(str(exc))
+
+
+class DetectStatus(Enum):
+    """What became of one image (and ``waiting``, the node's state before its first image)."""
+
+    FOUND = 'found'          # the sphere's conic was measured (marks may still be missing)
+    NOT_FOUND = 'not found'  # a valid image without the sphere
+    REJECTED = 'rejected'    # a bad buffer, or no camera yet: nothing was detected
+    WAITING = 'waiting'      # no image yet
+
+
+LEVELS = {DetectStatus.FOUND: Level.OK, DetectStatus.NOT_FOUND: Level.WARN,
+          DetectStatus.REJECTED: Level.ERROR, DetectStatus.WAITING: Level.OK}
+
+
+@dataclass(frozen=True)
+class DetectorOutput:
+    """
+    The detector's answer to one image.
+
+    image      the decoded image (H, W, 3) or (H, W) in its encoding; None when rejected.
+    detection  None when rejected.
+    reason     why not found or rejected ('' when found).
+    """
+
+    status: DetectStatus
+    image: Image | None = None
+    detection: Detection | None = None
+    reason: str = ''
+
+    @property
+    def measurement(self) -> Measurement:
+        """Return what is published: the detection's values, empty unless found."""
+        return Measurement.from_detection(self.detection)
+
+
+class DetectorCore:
+    """The ``detector`` node's logic (see the module docstring)."""
+
+    def __init__(self, params: DetectorParams):
+        self.params = params
+        self.detector = Detector.for_target(make_target(params.target_kind))
+        self.camera: CameraIntrinsics | None = None
+        self.last: DetectorOutput | None = None
+        self.counts = {status: 0 for status in DetectStatus if status is not DetectStatus.WAITING}
+
+    def status(self) -> NodeStatus:
+        """
+        Return the node's status: the latest image's outcome, and counts.
+
+        Values: ``images``, ``found``, ``not_found``, ``rejected`` (counts so far), ``camera``
+        (``yes`` once a usable camera_info came), ``reason`` (why the latest image gave no
+        sphere).
+        """
+        state = DetectStatus.WAITING if self.last is None else self.last.status
+        values = {'images': str(sum(self.counts.values())),
+                  **{k.name.lower(): str(n) for k, n in self.counts.items()},
+                  'camera': 'yes' if self.camera is not None else 'no'}
+        if self.last is not None and self.last.reason:
+            values['reason'] = self.last.reason
+        return NodeStatus(state, LEVELS[state], values)
+
+    def on_camera_info(self, width: int, height: int, k: Sequence[float],
+                       d: Sequence[float] | None) -> CameraIntrinsics | Refusal:
+        """Take the camera of a camera_info; a refused one leaves no camera."""
+        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error)
+        self.camera = cam if isinstance(cam, CameraIntrinsics) else None
+        return cam
+
+    def on_image(self, height: int, width: int, step: int, encoding: str,
+                 data) -> DetectorOutput:
+        """Detect in one image buffer (``sensor_msgs/Image`` fields) with the latest camera."""
+        self.last = out = self.detect(height, width, step, encoding, data, self.camera)
+        self.counts[out.status] += 1
+        return out
+
+    def detect(self, height: int, width: int, step: int, encoding: str, data,
+               camera: CameraIntrinsics | None) -> DetectorOutput:
+        """Detect in one image buffer with ``camera`` (None: rejected, no camera yet)."""
+        try:
+            img = image_from_buffer(height, width, step, encoding, data)
+            if camera is None:
+                raise ValueError('no valid camera_info received yet')
+            det = self.detector.detect(img, encoding, camera)
+        except ValueError as exc:
+            return DetectorOutput(DetectStatus.REJECTED, reason=str(exc))
+        return DetectorOutput(DetectStatus.FOUND if det.found else DetectStatus.NOT_FOUND,
+                              img, det, det.reason)

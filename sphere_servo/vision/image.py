@@ -1,0 +1,104 @@
+"""
+Images as ndarrays (no ROS): raw ``sensor_msgs/Image`` buffers, checks, colour tests.
+
+- :func:`image_from_buffer`  a raw buffer (height, width, step, encoding, data) → ndarray,
+  without cv_bridge; the detector node and the bag tools decode with it.
+- :func:`check_image`        an ndarray the detector can use, for its encoding.
+- :func:`to_chroma`, :func:`chroma_test`  chromaticity ``rgb / (R + G + B)`` and a fast
+  per-pixel "this colour within a tolerance" test.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sphere_servo.core.types import Image
+
+# the encodings the detector works on (8-bit colour or grey)
+ENCODINGS = ('rgb8', 'bgr8', 'mono8')
+# every encoding a buffer can be decoded from: channels, element type
+LAYOUTS = {'rgb8': (3, np.uint8), 'bgr8': (3, np.uint8), 'rgba8': (4, np.uint8),
+           'bgra8': (4, np.uint8), 'mono8': (1, np.uint8), '8UC1': (1, np.uint8),
+           '8UC3': (3, np.uint8), 'mono16': (1, np.uint16), '16UC1': (1, np.uint16),
+           '32FC1': (1, np.float32)}
+
+
+# --- sensor_msgs/Image buffer → ndarray ---------------------------------------------------
+def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *,
+                      is_bigendian: bool = False, encodings=ENCODINGS) -> np.ndarray:
+    """
+    Decode a ``sensor_msgs/Image``-like raw buffer into an ndarray.
+
+    Returns (H, W, C) for a multi-channel encoding (channel order unchanged) or (H, W) for
+    one channel, of the encoding's element type (native byte order): a view on ``data``
+    for 8-bit encodings, a copy for a byte-swapped one. ``encodings`` are the accepted
+    ones (default: the detector's :data:`ENCODINGS`; any of :data:`LAYOUTS`). Raises
+    ``ValueError`` on an unsupported encoding, a zero size, a ``step`` smaller than a row,
+    or ``len(data) != step · height``.
+    """
+    if encoding not in encodings or encoding not in LAYOUTS:
+        raise ValueError(f'unsupported image encoding {encoding!r}: use one of '
+                         f'{tuple(encodings)}')
+    height, width, step = int(height), int(width), int(step)
+    if height <= 0 or width <= 0:
+        raise ValueError(f'image has zero size: {width}x{height}')
+    ch, dtype = LAYOUTS[encoding]
+    dt = np.dtype(dtype).newbyteorder('>' if is_bigendian else '<')
+    row = width * ch * dt.itemsize
+    if step < row:
+        raise ValueError(f'step {step} is smaller than a row of {width} {encoding} pixels '
+                         f'({row} bytes)')
+    if not isinstance(data, (bytes, bytearray, memoryview, np.ndarray)):
+        data = bytes(data)         # e.g. rclpy's array.array or a list of ints
+    buf = np.frombuffer(data, dtype=np.uint8)
+    if buf.size != step * height:
+        raise ValueError(f'image data has {buf.size} bytes, but step·height = '
+                         f'{step}·{height} = {step * height}')
+    rows = buf.reshape(height, step)[:, :row]
+    if dt.itemsize > 1:
+        rows = np.ascontiguousarray(rows).view(dt).astype(dtype, copy=False)
+    return rows.reshape(height, width, ch) if ch > 1 else rows.reshape(height, width)
+
+
+def check_image(image, encoding: str) -> Image:
+    """
+    Check an image for the detector; return it as a C-contiguous uint8 array.
+
+    (H, W, 3) for rgb8 and bgr8, (H, W) for mono8 (an (H, W, 1) one is accepted). Raises
+    ``ValueError`` on an unsupported encoding, another element type or shape, a zero size.
+    """
+    if encoding not in ENCODINGS:
+        raise ValueError(f'unsupported image encoding {encoding!r}: use one of '
+                         f'{ENCODINGS}')
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise ValueError(f'image must be uint8, got {img.dtype}')
+    if img.ndim == 3 and img.shape[2] == 1 and encoding == 'mono8':
+        img = img[..., 0]
+    want = 3 if LAYOUTS[encoding][0] == 3 else 2
+    if img.ndim != want or (want == 3 and img.shape[2] != 3):
+        raise ValueError(f'{encoding} image must have shape '
+                         f'{"(H, W, 3)" if want == 3 else "(H, W)"}, got {img.shape}')
+    if img.size == 0:
+        raise ValueError(f'image has zero size: shape {img.shape}')
+    return np.ascontiguousarray(img)
+
+
+# --- colour ---------------------------------------------------------------------------------
+def to_chroma(rgb: np.ndarray) -> np.ndarray:
+    """Chromaticity ``rgb / (R + G + B)`` of (..., 3) colours."""
+    tot = rgb[..., 0] + rgb[..., 1] + rgb[..., 2]     # (a last-axis .sum is slow)
+    return rgb / np.maximum(tot, 1e-9)[..., None]
+
+
+def chroma_test(c: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Build ``(Q, w)`` so that ``((p @ Q)² @ w) < 0`` tests an rgb row's chromaticity.
+
+    The chromaticity ``p/Σp`` of the row ``p`` is within ``tol`` of ``c`` iff the test
+    holds: ``p @ Q = (p − c·Σp, Σp)`` and ``w = (1, 1, 1, −tol²)``, i.e.
+    ``|p − c·Σp|² < tol²·(Σp)²`` (one matrix product instead of a division per channel).
+    """
+    Q = np.empty((3, 4), np.float32)
+    Q[:, :3] = np.eye(3) - np.asarray(c, float)[None, :]
+    Q[:, 3] = 1.0
+    return Q, np.array([1.0, 1.0, 1.0, -tol * tol], np.float32)

@@ -1,0 +1,398 @@
+"""
+The marks (no ROS): colour blobs → centres back-projected on the sphere. DESIGN.md §2.
+
+Marks are found by colour (chromaticity, configurable) in the box of the silhouette. A
+surface mark's centre is *not* its image centroid (a painted cap is foreshortened,
+DESIGN.md §2): each pixel is back-projected on the estimated sphere (eq. 11–12), weighted
+by the surface area it covers, and the mean surface normal gives the cap's centre; a cap
+cut by the limb is measured from its boundary arc instead. The CC tip P3 (a small ball off
+the surface) is the image of its centre, from the moments of its blob.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from sphere_servo.core.conics import conic_from_moments, homogeneous, sampson_homogeneous
+from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.measurement import (MeasurementError, sphere_from_conic,
+                                           SphereMeasurement, unit_ray)
+from sphere_servo.core.types import Image, Vec2
+from sphere_servo.vision.image import chroma_test, to_chroma
+from sphere_servo.vision.silhouette import Silhouette
+
+_K3 = np.ones((3, 3), np.uint8)
+
+
+@dataclass
+class Mark:
+    """
+    One mark.
+
+    name           'P1', 'P2' or 'P3'.
+    uv_px          (2,) pixel of its centre (None when not visible).
+    xy_normalized  (2,) normalized image point of its centre (None when not visible).
+    visible        its centre was measured.
+    area_px        its (coverage-weighted) image area.
+    partial        a surface cap cut by the limb, whose centre comes from its visible
+                   boundary arc (or, if that cannot be measured, the mark is reported not
+                   visible).
+    """
+
+    name: str
+    uv_px: np.ndarray | None = None
+    xy_normalized: np.ndarray | None = None
+    visible: bool = False
+    area_px: float = 0.0
+    partial: bool = False
+
+    @property
+    def q(self) -> np.ndarray:
+        """Return the unit vector of the mark's centre (camera frame)."""
+        if not self.visible or self.xy_normalized is None:
+            raise MeasurementError(f'mark {self.name} is not visible')
+        return unit_ray(self.xy_normalized)
+
+
+class Backprojection(NamedTuple):
+    """
+    Image points back-projected on the estimated sphere (units of r), one value per point.
+
+    k       ``1/‖x̄‖`` (so ``q = k·x̄`` is the unit ray).
+    rho     ``‖P‖/r`` (eq. 11–12, σ = −1: the visible side).
+    nn      ``‖ρq − s_n,t‖`` (1 on the sphere; less for a ray that misses it, which meets
+            its closest point); None when every ray is known to hit the sphere.
+    cos_i   cosine of the viewing incidence; the unit surface normal is
+            ``n = (ρq − s_n,t)/nn``.
+    """
+
+    k: np.ndarray
+    rho: np.ndarray
+    nn: np.ndarray | None
+    cos_i: np.ndarray
+
+
+def on_sphere(sphere: SphereMeasurement, X: np.ndarray, hits: bool = False) -> Backprojection:
+    """
+    Back-project normalized image points ``X`` (3, N) = ``(x̄, 1)`` on the estimated sphere.
+
+    Scalar rows: ``|q| = 1`` turns the 3-vector norms and dot products into ``b·q`` and
+    ``s·q``. ``hits``: every ray is known to meet the sphere (pixels well inside the
+    silhouette), so ``nn`` is 1 (returned as None).
+    """
+    k = np.hypot(X[0], X[1])
+    np.hypot(k, 1.0, out=k)
+    np.divide(1.0, k, out=k)
+    rd = sphere.r_delta
+    sq = sphere.s_nt @ X
+    sq *= k
+    bq = rd * sq                              # b = r_δ s_n,t
+    root = bq * bq
+    root += rd * rd - 1.0
+    np.maximum(root, 0.0, out=root)
+    np.sqrt(root, out=root)
+    rho = bq - root
+    rho *= 1.0 / rd
+    if hits:
+        return Backprojection(k, rho, None, sq - rho)
+    # ‖ρq − s‖² = ρ² − 2ρ s·q + ‖s‖²
+    ss = float(sphere.s_nt @ sphere.s_nt)
+    nn = rho * (rho - 2.0 * sq)
+    nn += ss
+    np.maximum(nn, 1e-24, out=nn)
+    np.sqrt(nn, out=nn)
+    cos_i = sq - rho
+    cos_i /= nn
+    return Backprojection(k, rho, nn, cos_i)
+
+
+def ball_centre(u: np.ndarray, v: np.ndarray, w: np.ndarray, intr) -> Vec2:
+    """
+    Image (normalized) of a ball's centre from its filled blob.
+
+    Pixels ``u, v`` with weights ``w``; ``intr`` = (px, py, u0, v0). The blob's moments
+    (Sheppard-corrected, +1/12 px²) give its ellipse, whose conic is that of a sphere
+    (DESIGN.md §2), and ``b`` of :func:`sphere_from_conic` is the direction of the ball's
+    centre — unlike the blob centroid, which perspective shifts outwards (returned when
+    the moments are not a sphere's image).
+    """
+    px, py, u0, v0 = intr
+    sw = w.sum()
+    cu, cv_ = np.sum(w * u) / sw, np.sum(w * v) / sw
+    du, dv = u - cu, v - cv_
+    S = np.array([[np.sum(w * du * du), np.sum(w * du * dv)],
+                  [np.sum(w * du * dv), np.sum(w * dv * dv)]]) / sw + np.eye(2) / 12.0
+    A = np.diag([1.0 / px, 1.0 / py])
+    c_n = np.array([(cu - u0) / px, (cv_ - v0) / py])
+    try:
+        b = sphere_from_conic(conic_from_moments(c_n, A @ S @ A.T)).b
+    except GeometryError:          # MeasurementError or ConicError: not a sphere's image
+        return c_n
+    return b[:2] / b[2]
+
+
+class MarkFinder:
+    """
+    Find the marks and measure their centres, configured by the colours.
+
+    colors          {'body': rgb, 'P1': rgb, 'P2' or 'P3': rgb} (rgb8 triplets).
+    surface_marks   names of marks painted on the surface (centre by back-projection on the
+                    sphere); the others (the CC tip 'P3') use the image of their centre.
+    chroma_tol      largest chromaticity distance of a pixel to a mark's colour.
+    min_mark_px     smallest weighted area of a visible mark.
+    mark_radius     angular radius (rad) of the painted caps (fits a cap cut by the limb).
+    """
+
+    # a cap's (grown) pixels this close to the silhouette (px): the cap is cut by the limb
+    limb_px = 1.5
+
+    def __init__(self, colors: dict, surface_marks, *, chroma_tol: float = 0.12,
+                 min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0))):
+        self.mark_names = tuple(k for k in colors if k != 'body')
+        self.surface_marks = set(surface_marks)
+        self.chroma_tol = float(chroma_tol)
+        self.min_mark_px = float(min_mark_px)
+        self.cos_mark = float(np.cos(mark_radius))
+        body = np.asarray(colors['body'], float)
+        # (3, 2): rgb → (a, b) with rgb ≈ a·mark + b·body (least squares)
+        self._unmix = {k: np.linalg.pinv(np.column_stack([np.asarray(colors[k], float),
+                                                          body])).T
+                       for k in self.mark_names}
+        for k, U in self._unmix.items():        # columns a and a + b: α = a / (a + b)
+            U[:, 1] += U[:, 0]
+        # all marks' chromaticity tests in one product: (3, 4·n) and block weights (4·n, n)
+        tests = [chroma_test(to_chroma(np.asarray(colors[k], float)), self.chroma_tol)
+                 for k in self.mark_names]
+        self._mark_Q = np.hstack([Q for Q, _ in tests]) if tests else np.zeros((3, 0), np.float32)
+        self._mark_w = np.zeros((4 * len(tests), len(tests)), np.float32)
+        for i, (_, w) in enumerate(tests):
+            self._mark_w[4 * i:4 * i + 4, i] = w
+
+    def not_visible(self) -> dict:
+        """Name → an invisible :class:`Mark`, for every mark."""
+        return {n: Mark(n) for n in self.mark_names}
+
+    def find(self, img: Image, encoding: str, rgb: Image | None, sphere: SphereMeasurement,
+             sil: Silhouette, intr) -> dict:
+        """
+        Name → :class:`Mark` for every mark, seen in ``img``.
+
+        ``rgb`` is its rgb view (None for mono8: no colour, no marks), ``sphere`` and
+        ``sil`` the sphere measured from the silhouette, ``intr`` = (px, py, u0, v0).
+        """
+        marks = self.not_visible()
+        if rgb is None:
+            return marks
+        px, py, u0, v0 = intr
+        H, W = img.shape[:2]
+        (ecx, ecy), ax, _ = sil.ellipse
+        # the CC tip can lie outside the disc; surface marks cannot
+        off_surface = any(n not in self.surface_marks for n in self.mark_names)
+        rad = (1.7 if off_surface else 1.0) * max(ax) + 3
+        x0, x1 = max(0, int(ecx - rad)), min(W, int(ecx + rad) + 1)
+        y0, y1 = max(0, int(ecy - rad)), min(H, int(ecy + rad) + 1)
+        if x0 >= x1 or y0 >= y1:
+            return marks
+        # one pass over the box: saturated (max − min ≥ 0.27 max, HSV S ≥ 69) and bright
+        # enough (not the dark background) are the mark candidates
+        hsv = cv2.cvtColor(img[y0:y1, x0:x1],
+                           cv2.COLOR_RGB2HSV if encoding == 'rgb8' else cv2.COLOR_BGR2HSV)
+        cand = cv2.findNonZero(cv2.inRange(hsv, (0, 69, math.ceil(0.75 * sil.threshold)),
+                                           (255, 255, 255)))
+        if cand is None:
+            return marks
+        cand = cand.reshape(-1, 2)
+        roi = rgb[y0:y1, x0:x1]
+        # (N, n_marks): chromaticity within chroma_tol of each mark's
+        y = roi[cand[:, 1], cand[:, 0]].astype(np.float32) @ self._mark_Q
+        y *= y
+        sel_all = (y @ self._mark_w) < 0.0
+        C_px = sil.conic_px
+        # inside of the silhouette: the sign of the conic at the ellipse's centre
+        (ca, cb, cd), (_, cc, ce), (_, _, cf) = C_px.tolist()
+        inside = 1.0 if (ca * ecx * ecx + 2 * cb * ecx * ecy + cc * ecy * ecy + 2 * cd * ecx
+                         + 2 * ce * ecy + cf) > 0 else -1.0
+        for i, name in enumerate(self.mark_names):
+            sel = sel_all[:, i]
+            if not sel.any():
+                continue
+            pts = cand[sel]
+            # components on the selected pixels' box only
+            lx, ly, bw, bh = cv2.boundingRect(pts)
+            m = np.zeros((bh, bw), np.uint8)
+            rel = pts - (lx, ly)
+            ry, rx = rel[:, 1], rel[:, 0]
+            m[ry, rx] = 1
+            nlab, lab, st, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+            if nlab < 2:
+                continue
+            if nlab > 2:
+                st = st[1:]
+                areas = st[:, cv2.CC_STAT_AREA]
+                b = int(np.argmax(areas))
+                # the largest blob and the pieces next to it (an occluder can split a mark)
+                bx, by, bw, bh = st[b, :4].tolist()
+                reach = max(bw, bh)
+                near = ((areas >= 0.05 * areas[b]) & (st[:, 0] <= bx + bw + reach)
+                        & (st[:, 0] + st[:, 2] >= bx - reach) & (st[:, 1] <= by + bh + reach)
+                        & (st[:, 1] + st[:, 3] >= by - reach))
+                if not near.all():
+                    lut = np.zeros(nlab, bool)
+                    lut[1:] = near
+                    pts = pts[lut[lab[ry, rx]]]
+            # a painted cap is convex in the image: fill its convex hull, so that a thin
+            # occluder (the CC stick lies across P1's cap) does not bias the centre; its
+            # box in roi coordinates, grown by 2 px for the anti-aliased rim
+            hull = cv2.convexHull(pts)
+            hx, hy, hw, hh = cv2.boundingRect(hull)
+            gx0, gy0 = max(0, hx - 2), max(0, hy - 2)
+            gx1 = min(roi.shape[1], hx + hw + 2)
+            gy1 = min(roi.shape[0], hy + hh + 2)
+            full = np.zeros((gy1 - gy0, gx1 - gx0), np.uint8)
+            cv2.fillConvexPoly(full, hull - np.array([gx0, gy0], np.int32), 1)
+            yy, xx = np.nonzero(cv2.dilate(full, _K3))
+            ox, oy = x0 + gx0, y0 + gy0
+            rim = None
+            if name in self.surface_marks:
+                # coverage by unmixing: pixel = a·shade·mark + b·shade·body, α = a/(a + b)
+                ab = roi[gy0:gy1, gx0:gx1][yy, xx].astype(np.float64) @ self._unmix[name]
+                alpha = ab[:, 0] / np.maximum(ab[:, 1], 1e-9)
+                np.minimum(np.maximum(alpha, 0.0, out=alpha), 1.0, out=alpha)
+                inner = cv2.erode(full, _K3)[yy, xx]       # 1 inside, 0 on the rim
+                np.maximum(alpha, inner, out=alpha)
+                # (nearly) cut by the limb? The distance to the silhouette is concave inside
+                # it, so over the hull's box it is smallest at a corner; the grown pixels are
+                # within 2 px of the hull: only a cap whose box has a corner within
+                # limb_px + 4 px of the silhouette (or outside it) needs per-pixel distances
+                bu0, bv0 = x0 + hx - 0.5, y0 + hy - 0.5
+                near_limb = False
+                for cu, cv_ in ((bu0, bv0), (bu0 + hw, bv0), (bu0, bv0 + hh),
+                                (bu0 + hw, bv0 + hh)):
+                    g0 = ca * cu + cb * cv_ + cd
+                    g1 = cb * cu + cc * cv_ + ce
+                    alg = inside * (g0 * cu + g1 * cv_ + cd * cu + ce * cv_ + cf)
+                    if alg < (self.limb_px + 4.0) * 2.0 * math.hypot(g0, g1):
+                        near_limb = True
+                        break
+                Ppx = homogeneous(xx, yy)
+                Ppx[0] += ox
+                Ppx[1] += oy
+                if near_limb:
+                    dsil = np.abs(sampson_homogeneous(C_px, Ppx))
+                    if float(dsil.min()) < self.limb_px:
+                        # the visible part's mean is biased; use the boundary with the body,
+                        # away from the silhouette
+                        rim = ((inner == 0) & (alpha > 0.2) & (alpha < 0.8)
+                               & (dsil > self.limb_px + 1.0))
+            else:
+                # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
+                # with the background, whose chromaticity says nothing of coverage)
+                alpha = full[yy, xx].astype(np.float64)
+            area = float(alpha.sum())
+            if area < self.min_mark_px:
+                continue
+            if name in self.surface_marks:
+                Kinv = np.array([[1.0 / px, 0.0, -u0 / px], [0.0, 1.0 / py, -v0 / py],
+                                 [0.0, 0.0, 1.0]])
+                xy = self.cap_centre(sphere, Kinv @ Ppx, alpha, rim, hits=not near_limb)
+                if xy is None:
+                    marks[name] = Mark(name, area_px=area, partial=rim is not None)
+                    continue
+            else:
+                xy = ball_centre(xx + float(ox), yy + float(oy), alpha, (px, py, u0, v0))
+            uv = np.array([px * xy[0] + u0, py * xy[1] + v0])
+            marks[name] = Mark(name, uv, xy, True, area, partial=rim is not None)
+        return marks
+
+    def cap_centre(self, sphere: SphereMeasurement, X: np.ndarray, w: np.ndarray,
+                   rim: np.ndarray | None = None, hits: bool = False) -> Vec2 | None:
+        """
+        Centre (normalized image point) of a painted cap from its pixels.
+
+        ``X`` (3, N) = ``(x̄, 1)``: the pixels in normalized coordinates, ``w`` their
+        coverage.
+
+        Whole cap: back-project the pixels on the sphere (units of r, eq. 11–12), weight
+        each by the surface area of its footprint (``‖P‖² / (‖x̄‖³ cos i)``) and average the
+        unit normals (DESIGN.md §2, second lesson).
+
+        ``rim`` (bool mask of the pixels on the cap's boundary with the body, away from the
+        silhouette) is given when the cap is cut by the limb: then the visible part's mean
+        is biased towards the camera, and the centre comes instead from the cap's boundary
+        circle, ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit
+        m, weights cos² i for the back-projection's sensitivity, outliers — the CC stick —
+        dropped) to the rim pixels' normals.
+
+        Returns the image of ``s_n,t + m`` (m: the unit normal at the centre), or None when
+        the centre cannot be measured (it faces away from the camera, or too little rim is
+        visible).
+        """
+        k, rho, nn, cos_i = on_sphere(sphere, X, hits and rim is None)
+        s_nt = sphere.s_nt
+        # Σ wa·n with n = (ρ k X − s)/nn and wa = w ρ² k³ / max(cos i, 0.1)
+        t = rho * k
+        c = t * t
+        c *= k
+        c *= w
+        c /= np.maximum(cos_i, 0.1)
+        if nn is not None:
+            c /= nn
+        m = X @ (c * t) - float(c.sum()) * s_nt
+        m /= max(math.sqrt(float(m @ m)), 1e-300)
+        if rim is not None:
+            m = self._fit_rim(m, X, k, rho, nn, cos_i, s_nt, rim)
+            if m is None:
+                return None
+        P = s_nt + m
+        if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
+            return None
+        return P[:2] / P[2]
+
+    def _fit_rim(self, m, X, k, rho, nn, cos_i, s_nt, rim) -> np.ndarray | None:
+        """Fit the unit normal m at the cap's centre to its rim pixels (:meth:`cap_centre`)."""
+        if np.count_nonzero(rim) < 8:
+            return None
+        ir = 1.0 / nn[rim]
+        nb = X[:, rim] * (rho[rim] * k[rim] * ir) - s_nt[:, None] * ir
+        cb = np.maximum(cos_i[rim], 0.05)
+        wb = cb * cb
+        cosr = self.cos_mark
+        # the weighted sums over the rim as moments: Σ w n nᵀ and Σ w n, so that
+        # each step costs 3×3 products (J_a = t_a·n, residual m·n − cos r)
+        S, mu = (nb * wb) @ nb.T, nb @ wb
+        for it in range(6):
+            # tangent basis (t1, t2) at m, then one weighted Gauss–Newton step
+            mx, my, mz = m.tolist()
+            if abs(mx) < 0.9:
+                t1x, t1y, t1z = 0.0, -mz, my
+            else:
+                t1x, t1y, t1z = mz, 0.0, -mx
+            tn = 1.0 / math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
+            t1x, t1y, t1z = t1x * tn, t1y * tn, t1z * tn
+            t2 = (my * t1z - mz * t1y, mz * t1x - mx * t1z, mx * t1y - my * t1x)
+            T = np.array([m.tolist(), [t1x, t1y, t1z], t2])
+            (m0, a11, a12), (m1, _, a22) = (T[1:] @ S @ T.T).tolist()
+            _, v1, v2 = (T @ mu).tolist()
+            g1, g2 = m0 - cosr * v1, m1 - cosr * v2
+            det = a11 * a22 - a12 * a12
+            if det < 1e-18:
+                return None
+            d1, d2 = -(a22 * g1 - a12 * g2) / det, -(a11 * g2 - a12 * g1) / det
+            m = np.array([mx + d1 * t1x + d2 * t2[0], my + d1 * t1y + d2 * t2[1],
+                          mz + d1 * t1z + d2 * t2[2]])
+            m /= math.sqrt(float(m @ m))
+            if it == 1:                     # drop outliers once (the CC stick's rim)
+                r = np.abs(m @ nb - cosr)
+                kk = len(r) // 2
+                keep = r < max(3.0 * 1.4826 * float(np.partition(r, kk)[kk]), 2e-3)
+                if np.count_nonzero(keep) < 8:
+                    return None
+                nb, wb = nb[:, keep], wb[keep]
+                S, mu = (nb * wb) @ nb.T, nb @ wb
+            elif max(abs(d1), abs(d2)) < 1e-7:
+                break
+        return m

@@ -1,0 +1,407 @@
+"""
+The sphere's silhouette (no ROS): candidate blobs → sub-pixel edge → conic. DESIGN.md §2.
+
+1. ``V = max(R, G, B)`` (marks are as bright as the body in V, so they neither hole nor notch
+   the silhouette), Otsu threshold, outer contours (holes are ignored: "fill the holes").
+2. Pick the candidate blob that is bright, contrasted, elliptical and body-coloured.
+3. Sub-pixel edge: along the coarse ellipse's normal at each contour point that is *not on
+   the image border*, the edge offset is the area under the anti-aliased step,
+   ``e = Σ_j c(o_j) − (K + ½)`` with ``c = (I − I_out)/(I_in − I_out)`` clipped to [0, 1],
+   unit-spaced samples ``o_j = −K … K`` (exact for a box-filtered or blurred straight edge;
+   robust to the shading gradient because the levels are taken just inside and outside).
+4. Conic fit to the edge points (algebraic, Hartley-normalized, Sampson-reweighted,
+   outliers — mark notches, the CC stick — rejected), in pixels.
+
+:meth:`SilhouetteFinder.find` returns a :class:`Silhouette` or a :class:`NotDetected`
+whose :class:`Reason` says why.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+import functools
+import math
+
+import cv2
+import numpy as np
+
+from sphere_servo.core.conics import (conic_from_rotated_rect, Ellipse, ellipse_params,
+                                      fit_conic_homogeneous, homogeneous, sampson_homogeneous)
+from sphere_servo.core.types import Conic, Image
+from sphere_servo.vision.image import chroma_test, to_chroma
+
+
+class Reason(Enum):
+    """Why the sphere was not detected; the value is the message."""
+
+    NO_BLOB = 'no bright blob in the image'
+    TOO_SMALL = 'largest blob too small'
+    TOO_LARGE = 'target too large for the image'
+    NOT_BODY_COLOURED = 'blob is not body-coloured'
+    NOT_ELLIPTICAL = 'blob is not elliptical'
+    FEW_EDGE_POINTS = 'too few clean edge points'
+    LOW_CONTRAST = 'blob contrast too low'
+    NOT_A_SPHERE = 'fitted conic is not a sphere image'
+
+
+@dataclass(frozen=True)
+class NotDetected:
+    """The sphere was not found: the reason and a detail (numbers, the failing check)."""
+
+    reason: Reason
+    detail: str = ''
+
+    def __str__(self) -> str:
+        return self.reason.value + (f' ({self.detail})' if self.detail else '')
+
+
+@dataclass(frozen=True)
+class Silhouette:
+    """
+    The sphere's silhouette in one image, in pixels.
+
+    conic_px       3×3 conic of the fitted ellipse (pixels, unit Frobenius norm).
+    rms_px         RMS Sampson distance of the kept edge points to it.
+    n_points       edge points kept by the final fit.
+    ellipse        its :class:`~sphere_servo.core.conics.Ellipse`.
+    cut_by_border  the blob touches the image border (fitted on its free contour only).
+    threshold      Otsu threshold of V (grey levels) that separated the blob.
+    """
+
+    conic_px: Conic
+    rms_px: float
+    n_points: int
+    ellipse: Ellipse
+    cut_by_border: bool
+    threshold: float
+
+
+def robust_ellipse(pts: np.ndarray, min_keep: int, tol_min: float,
+                   rounds: int = 4) -> Ellipse | None:
+    """
+    Fit ``cv2.fitEllipseDirect`` to float32 (N, 2) points, dropping those far from the fit.
+
+    Points far from the ellipse (a lump on the contour: clutter touching the sphere, the CC
+    stick) are dropped until it is tight. None when too few points remain or the fit
+    degenerates.
+    """
+    P = homogeneous(pts[:, 0], pts[:, 1])
+    for _ in range(rounds + 1):
+        if len(pts) < max(6, min_keep):
+            return None
+        (cx, cy), (w, h), a = cv2.fitEllipseDirect(pts)
+        if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(w)
+                and math.isfinite(h) and w > 0.5 and h > 0.5):
+            return None
+        C = conic_from_rotated_rect(cx, cy, w, h, a)
+        d = np.abs(sampson_homogeneous(C, P))
+        rr = Ellipse((cx, cy), (0.5 * w, 0.5 * h), math.radians(a))
+        k = len(d) // 2
+        keep = d < max(tol_min, 4.5 * float(np.partition(d, k)[k]))
+        if np.count_nonzero(keep) == len(keep):
+            break
+        pts, P = pts[keep], P[:, keep]
+    return rr
+
+
+@functools.lru_cache(maxsize=None)
+def _trig(N: int) -> np.ndarray:
+    """(2, N): cos and sin of N angles evenly spaced on [0, 2π)."""
+    t = np.linspace(0.0, 2 * math.pi, N, endpoint=False)
+    return np.stack([np.cos(t), np.sin(t)])
+
+
+@functools.lru_cache(maxsize=None)
+def _offsets(L: int) -> np.ndarray:
+    """Sample offsets −L … L along a profile."""
+    return np.arange(-L, L + 1, dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=None)
+def _indices(N: int, P: int, K: int):
+    """
+    Index helpers of the edge profiles.
+
+    The flat index of sample M of each of the N profiles (P samples each), the offsets of
+    samples −M, −1, K, and those of the window −2 … K in a 3-channel and a 1-channel
+    profile.
+    """
+    M = K + 1
+    return (np.arange(M, N * P, P), np.array([-M, -1, K]), np.arange(-6, 3 * K + 1, 3),
+            np.arange(-2, K + 1))
+
+
+@functools.lru_cache(maxsize=None)
+def _o1(K: int) -> np.ndarray:
+    """(1, K + 1): the distances 1 … K + 1 of the window's samples from the inside level."""
+    return np.arange(1, K + 2, dtype=np.float32)[None, :]
+
+
+@functools.lru_cache(maxsize=None)
+def _drop_weight(L: int) -> np.ndarray:
+    """(1, 2L): the mild preference for an edge near the middle of the profile."""
+    mid = np.arange(-L, L, dtype=np.float32) + 0.5
+    return (1.0 - 0.5 * (mid / (L + 1)) ** 2)[None, :]
+
+
+class SilhouetteFinder:
+    """
+    Find and fit the sphere's silhouette, configured by the body's colour.
+
+    body            rgb8 colour of the body.
+    min_area_px     smallest blob accepted as the sphere.
+    min_contrast    smallest difference (grey levels of V) between the body just inside its
+                    edge and the background just outside.
+    body_chroma_tol largest chromaticity distance of a body pixel to ``body`` (1.5 times
+                    that for the edge's inside samples).
+    K               half-length (px) of the edge profiles (sub-pixel step).
+    max_edge_points largest number of edge points of the final fit.
+    coarse_step     subsampling of the image in which the blob is found (1: none).
+    """
+
+    def __init__(self, body, *, min_area_px: float = 30.0, min_contrast: float = 25.0,
+                 body_chroma_tol: float = 0.08, K: int = 3, max_edge_points: int = 100,
+                 coarse_step: int = 4):
+        self.min_area_px = float(min_area_px)
+        self.min_contrast = float(min_contrast)
+        self.body_chroma_tol = float(body_chroma_tol)
+        self.K = int(K)
+        self.max_edge_points = int(max_edge_points)
+        self.coarse_step = max(1, int(coarse_step))
+        self.body_chroma = to_chroma(np.asarray(body, float))
+        Q, w = chroma_test(self.body_chroma, 1.5 * self.body_chroma_tol)
+        self._body_test = {False: Q, True: np.ascontiguousarray(Q[::-1])}, w
+
+    def find(self, img: Image, rgb: Image | None) -> Silhouette | NotDetected:
+        """
+        Find the silhouette in ``img`` (checked uint8; ``rgb`` its rgb view, None for mono8).
+
+        The blob is found on a subsampled image (nearest: pixel (i, j) is pixel (s·i, s·j));
+        everything at full resolution happens along the blob's edge and in its box only.
+        """
+        H, W = img.shape[:2]
+        s = max(1, min(self.coarse_step, min(H, W) // 60))
+        res = self._find(img, rgb, s, W, H)
+        if isinstance(res, NotDetected) and s > 1 \
+                and res.reason in (Reason.NO_BLOB, Reason.TOO_SMALL):
+            res = self._find(img, rgb, 1, W, H)         # a tiny target: full resolution
+        if isinstance(res, NotDetected) and rgb is not None and self._fills_frame(rgb):
+            res = NotDetected(Reason.TOO_LARGE, 'the body fills the frame')
+        return res
+
+    def _fills_frame(self, rgb: Image) -> bool:
+        """All four corners and the centre of the image are body-coloured."""
+        H, W = rgb.shape[:2]
+        k = max(1, min(H, W) // 20)
+        patches = [rgb[:k, :k], rgb[:k, -k:], rgb[-k:, :k], rgb[-k:, -k:],
+                   rgb[H // 2 - k // 2:H // 2 + k // 2 + 1, W // 2 - k // 2:W // 2 + k // 2 + 1]]
+        return all(np.linalg.norm(to_chroma(p.reshape(-1, 3).mean(axis=0))
+                                  - self.body_chroma) < self.body_chroma_tol
+                   for p in patches)
+
+    def _is_body(self, pix: np.ndarray, bgr: bool = False) -> np.ndarray:
+        """(N,) bool: the (N, 3) rgb (bgr if ``bgr``) pixels have the body's chromaticity."""
+        Q, w = self._body_test
+        y = pix.astype(np.float32) @ Q[bgr]
+        y *= y
+        return (y @ w) < 0.0
+
+    def _find(self, img, rgb, s: int, W: int, H: int) -> Silhouette | NotDetected:
+        """
+        Threshold ``V = max(R, G, B)`` of the image subsampled by ``s`` (Otsu).
+
+        Then take the largest outer contours and fit each until one is the sphere.
+        """
+        hs, ws = H // s, W // s
+        if img.ndim == 3:
+            # V of the pixels (s·i, s·j): rows by a strided view, columns as the first
+            # pixel of each group of s (numpy: no thread hand-offs for a 160×120 image)
+            g = img[:hs * s:s, :ws * s].reshape(hs, ws, 3 * s)
+            Vs = np.maximum(np.maximum(g[..., 0], g[..., 1]), g[..., 2])
+        else:
+            Vs = np.ascontiguousarray(img[:hs * s:s, :ws * s:s])
+        thr, mask = cv2.threshold(Vs, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
+                       reverse=True)[:6]
+        miss = NotDetected(Reason.NO_BLOB)
+        for cnt in cands:
+            area = cv2.contourArea(cnt) * s * s
+            if area < self.min_area_px:
+                miss = NotDetected(Reason.TOO_SMALL, f'{area:.0f} px < {self.min_area_px:.0f}')
+                break
+            pts = cnt.reshape(-1, 2)
+            bx, by, bw, bh = cv2.boundingRect(cnt)
+            cut = bx <= 0 or by <= 0 or bx + bw >= ws or by + bh >= hs
+            free = pts
+            if cut:
+                on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= ws - 1) | (pts[:, 1] <= 0)
+                             | (pts[:, 1] >= hs - 1))
+                free = pts[~on_border]
+                if len(free) < 8 or len(free) < 0.3 * len(pts):
+                    miss = NotDetected(Reason.TOO_LARGE, 'too little of its contour is inside')
+                    continue
+            if img.ndim == 3:
+                # keep the contour points whose inside (2 px towards the blob's centre) is
+                # body-coloured: a bright clutter shape or a mark merged with the sphere
+                # must not pull the coarse ellipse
+                f = free.astype(np.float32)
+                dv = f.sum(axis=0) / len(f) - f
+                dn = np.hypot(dv[:, 0], dv[:, 1])
+                np.maximum(dn, 1e-9, out=dn)
+                dv *= (2.0 / dn)[:, None]
+                dv += f
+                dv += 0.5
+                # flat index of the full-resolution pixel (s·i, s·j)
+                qi = dv.astype(np.intp) @ np.array([s * 3, s * 3 * W], np.intp)
+                body = self._is_body(img.reshape(-1)[qi[:, None] + np.arange(3)],
+                                     bgr=rgb is not img)
+                if np.count_nonzero(body) < max(8, 0.3 * len(free)):
+                    miss = NotDetected(Reason.NOT_BODY_COLOURED)
+                    continue
+                free = free[body]
+            res = self._fit_blob(free.astype(np.float32) * s, img, rgb, s, W, H, cut,
+                                 float(thr))
+            if isinstance(res, NotDetected):
+                miss = res
+                continue
+            return res
+        return miss
+
+    def _fit_blob(self, free: np.ndarray, img, rgb, s: int, W: int, H: int, cut: bool,
+                  thr: float) -> Silhouette | NotDetected:
+        """
+        Fit the sub-pixel ellipse of a blob from its free contour points.
+
+        ``free``: the (N, 2) float32 full-resolution pixels of the contour not on the border
+        (found at step ``s``); ``cut`` and ``thr`` are passed into the result.
+
+        Along the coarse ellipse's outward normals (points on the image only), V is sampled
+        (bilinear) at unit steps over ±(2s + 4) px; on each profile the edge is the largest
+        fall of V (a mild preference for the middle keeps a nearby clutter edge from
+        winning), and its sub-pixel offset is the area under the anti-aliased step in a
+        window of M = K + 1 samples inside and K outside the nearest sample,
+        ``e = Σ_j c(o_j) − (M + ½)``, ``c = (I − I_out)/(S − I_out)`` clipped to [0, 1]
+        (exact for a box-filtered or blurred straight edge); the inside level S is
+        extrapolated from 2 and 3 px inside, since the body's shade changes quickly near
+        the limb. (Written for speed: one remap, flat gathers, float scalars.)
+        """
+        n0 = len(free)
+        if n0 > 400:
+            free = free[np.linspace(0, n0 - 1, 400).astype(int)]
+        ep = robust_ellipse(free, int(0.3 * min(n0, 400)), 1.0 * s)
+        if ep is None:
+            return NotDetected(Reason.NOT_ELLIPTICAL)
+        (cx, cy), (a0, a1), ang = ep
+        per = math.pi * (3 * (a0 + a1) - math.sqrt((3 * a0 + a1) * (a0 + 3 * a1)))
+        N = int(min(max(per / 1.5, 24), self.max_edge_points))
+        ca, sa = math.cos(ang), math.sin(ang)
+        # rows: point x, y (about the centre) and normal x, y (unnormalized)
+        G = np.array([[a0 * ca, -a1 * sa], [a0 * sa, a1 * ca],
+                      [ca / a0, -sa / a1], [sa / a0, ca / a1]]) @ _trig(N)
+        G[0] += cx
+        G[1] += cy
+        G[2:] /= np.hypot(G[2], G[3])
+        L = 2 * s + 4
+        hx, hy = 0.5 * (W - 1), 0.5 * (H - 1)
+        bw = math.hypot(a0 * ca, a1 * sa)           # half-extents of the ellipse's box
+        bh = math.hypot(a0 * sa, a1 * ca)
+        if abs(cx - hx) + bw + L > hx - 1.0 or abs(cy - hy) + bh + L > hy - 1.0:
+            px_, py_, nx, ny = G
+            ok = ((np.abs(px_ - hx) + L * np.abs(nx) <= hx - 1.0)
+                  & (np.abs(py_ - hy) + L * np.abs(ny) <= hy - 1.0))
+            G = G[:, ok]
+            N = G.shape[1]
+            if N < 10:
+                return NotDetected(Reason.FEW_EDGE_POINTS, f'{N} on the image')
+        P = 2 * L + 1
+        # sample maps (2, N·P): point + offset · normal, for offsets −L … L
+        maps = G[2:, :, None] * _offsets(L)
+        maps += G[:2, :, None]
+        maps = maps.astype(np.float32).reshape(2, 1, N * P)
+        prof3 = cv2.remap(img, maps[0], maps[1], cv2.INTER_LINEAR)
+        K, M = self.K, self.K + 1
+        color = prof3.ndim == 3
+        if color:
+            prof3 = prof3.reshape(N, P, 3)
+            prof = np.maximum(np.maximum(prof3[..., 0], prof3[..., 1]), prof3[..., 2])
+        else:
+            prof = prof3.reshape(N, P)
+        # the edge lies between samples j and j + 1 where V falls most (the window
+        # j − M … j + K must fit in the profile)
+        drop = np.subtract(prof[:, M:P - K], prof[:, M + 1:P - K + 1], dtype=np.float32)
+        drop *= _drop_weight(L)[:, M:P - K]
+        jj = drop.argmax(axis=1)                    # j − M
+        base, pick, win3, win1 = _indices(N, P, K)
+        jf = jj + base                              # flat index of sample j
+        if color:
+            # a mixed pixel's V = max(R, G, B) is not linear in its coverage when the
+            # background's largest channel is not the body's: measure the step in the one
+            # channel with the largest inside − outside contrast (a mark at the limb is as
+            # bright as the body in its own channel)
+            # the pixels at j − M (body test), j − 1 and j + K (contrast), (N, 3, 3)
+            px3 = prof3.reshape(-1, 3)[jf[:, None] + pick]
+            dc = px3[:, 1].astype(np.int16) - px3[:, 2]
+            if rgb is not img:                 # bgr8: ties broken as for rgb8
+                ch = 2 - dc[:, ::-1].argmax(axis=1)
+            else:
+                ch = dc.argmax(axis=1)
+            win = prof3.reshape(-1)[(jf * 3 + ch)[:, None] + win3]
+        else:
+            win = prof.reshape(-1)[jf[:, None] + win1]
+        # win: samples j − 2 … j + K in the chosen channel
+        win = win.astype(np.float32)
+        i3, i2 = win[:, 0], win[:, 1]
+        i_out = 0.5 * (win[:, -1] + win[:, -2])
+        contrast = i2 - i_out
+        k = N // 2
+        med = float(np.partition(contrast, k)[k])
+        if med < self.min_contrast:
+            return NotDetected(Reason.LOW_CONTRAST, f'{med:.0f} < {self.min_contrast:.0f}')
+        # coverage of the samples j … j + K; the M samples inside count 1 each
+        S = (i2 - i3)[:, None] * _o1(K)             # S − I_out
+        S += contrast[:, None]
+        np.maximum(S, 1e-6, out=S)
+        cov = win[:, 2:] - i_out[:, None]
+        cov /= S
+        np.minimum(np.maximum(cov, 0.0, out=cov), 1.0, out=cov)      # (np.clip is slower)
+        csum = cov.sum(axis=1)
+        good = (contrast > 0.5 * self.min_contrast) & (csum < 2.5)
+        if color:
+            # the edge is the body's only where the inside (M px in) is body-coloured
+            body = self._is_body(px3[:, 0], bgr=rgb is not img)
+            if np.count_nonzero(body) < 0.5 * N:
+                return NotDetected(Reason.NOT_BODY_COLOURED, 'along the edge')
+            good &= body
+        ng = np.count_nonzero(good)
+        if ng < 10:
+            return NotDetected(Reason.FEW_EDGE_POINTS, f'{ng} clean')
+        e = (csum + (jj - (L + 0.5 - M)))[good]     # offset from the ellipse point
+        Gg = G[:, good]
+        E = np.empty((3, ng))                       # the edge points, homogeneous rows
+        np.multiply(Gg[2:], e, out=E[:2])
+        E[:2] += Gg[:2]
+        E[2] = 1.0
+        sc = 2.0 / math.sqrt(a0 * a0 + a1 * a1)     # Hartley scale of the coarse ellipse
+        C = fit_conic_homogeneous(E, cx, cy, sc)
+        for _ in range(3):
+            d = sampson_homogeneous(C, E)
+            k = len(d) // 2
+            med = float(np.partition(d, k)[k])
+            ad = np.abs(d - med)
+            sigma = 1.4826 * float(np.partition(ad, k)[k])
+            keep = ad < max(3.0 * sigma, 0.3)
+            nk = np.count_nonzero(keep)
+            if nk < 10:
+                return NotDetected(Reason.FEW_EDGE_POINTS, f'{nk} inliers')
+            if nk == len(keep):
+                break
+            E = E[:, keep]
+            C = fit_conic_homogeneous(E, cx, cy, sc)
+        else:
+            d = sampson_homogeneous(C, E)
+        ep = ellipse_params(C)
+        if ep is None:
+            return NotDetected(Reason.NOT_ELLIPTICAL, 'the fitted conic')
+        rms = math.sqrt(float(d @ d) / len(d))
+        return Silhouette(C, rms, len(d), ep, cut, thr)
