@@ -224,3 +224,46 @@ def test_bad_inputs(recorded, tmp_path):
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert code == 1 and len(lines) == 1 and text in lines[0], f'{what}: {err!r}'
         assert lines[0].startswith('replay3d: error:') and not (tmp_path / 'x.html').exists()
+
+
+def _copy_without_last_joint_states(src: Path, dst: Path, n: int) -> None:
+    """Copy a bag message for message, leaving out its last ``n`` joint_states."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from sphere_servo.bag.bagio import bag, iter_raw, typestore
+    with bag(src) as reader:
+        joints = sum(c.msgcount for c in reader.connections if c.topic == '/joint_states')
+        with Writer(dst, version=Writer.VERSION_LATEST,
+                    storage_plugin=StoragePlugin.MCAP) as w:
+            conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=typestore())
+                     for c in reader.connections}
+            k = 0
+            for c, ts, raw in iter_raw(reader):
+                if c.topic == '/joint_states':
+                    k += 1
+                    if k > joints - n:
+                        continue
+                w.write(conns[c.id], ts, raw)
+
+
+def test_frames_without_a_recorded_joint_state(recorded, tmp_path):
+    """
+    Replay a bag whose recorder lost the last joint states (as a loaded machine does).
+
+    The page keys only the frames that have one, at their own frame numbers, and the tool
+    says how many had none.
+    """
+    lossy = tmp_path / 'lossy'
+    _copy_without_last_joint_states(recorded.bag, lossy, 40)
+    run = read_run(lossy)
+    assert len(run.frames) == recorded.iterations  # the images and states are all there
+    posed = [k for k, st in enumerate(run.frames) if st in run.joints]
+    assert posed == list(range(recorded.iterations - 40))
+    code, stdout, err = _run([lossy, '-o', tmp_path / 'r.html'])
+    assert code == 0, err
+    assert '40 frames have no recorded joint state' in stdout
+    text = (tmp_path / 'r.html').read_text(encoding='utf-8')
+    assert '40 without a recorded joint state' in text
+    anim = [c for c in _commands(text) if c['type'] == 'set_animation'][0]
+    for a in anim['animations']:
+        if a['path'].startswith(('/meshcat/robot/', '/meshcat/camera/')):
+            assert [k['time'] for k in a['clip']['tracks'][0]['keys']] == posed

@@ -179,3 +179,13 @@ def test_a_bag_without_images_fails_with_a_message(tmp_path):
         assert not out.exists() and 'Traceback' not in stdout + err
     code, _, err = _run([tmp_path / 'joints', '--fps', '0'])
     assert code == 1 and '--fps' in err
+
+
+def test_the_demo_writes_the_video_the_gif_and_the_page(recorded, tmp_path):
+    """``make demo``'s last step, on the recorded run: all three files, from its bag."""
+    from sphere_servo.experiments.demo import watch_files
+    files = watch_files(recorded.bag, tmp_path, 'special_sphere')
+    assert files == [tmp_path / 'servo.mp4', tmp_path / 'servo.gif', tmp_path / 'replay.html']
+    assert len(_decode(files[0])) == recorded.iterations
+    assert cv2.VideoCapture(str(files[1])).read()[0]
+    assert '<title>replay: ' in files[2].read_text(encoding='utf-8')

@@ -120,9 +120,10 @@ def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], flo
     List the meshcat commands of the replay, in order, and the animation's duration (s).
 
     What is drawn is the scene's markers (:meth:`Scene.markers`, what a ROS viewer shows),
-    each at ``/meshcat/<ns>/<id>``; one animation frame per run frame moves the robot's
-    meshes and the camera, and shows each piece of the camera's path from the frame the
-    camera reaches its end on.
+    each at ``/meshcat/<ns>/<id>``; one animation key per run frame with a recorded joint
+    state moves the robot's meshes and the camera (a frame whose joint state the recorder
+    lost gets no key: the viewer interpolates between its neighbours), and shows each piece
+    of the camera's path from the frame the camera reaches its end on.
     """
     with warnings.catch_warnings():  # meshcat imports its server, on a deprecated pyzmq API
         warnings.simplefilter('ignore', DeprecationWarning)
@@ -130,9 +131,11 @@ def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], flo
     from meshcat.animation import Animation
     rec = Recorder()
     vis = meshcat.Visualizer(window=rec)
+    index = {st: k for k, st in enumerate(run.frames)}
     frames = [st for st in run.frames if st in run.joints]
     if not frames:
         raise BagError(f'{run.path}: no joint state for any frame of the run')
+    ks = [index[st] for st in frames]  # their frame numbers in the run
     qs = [run.joints[st] for st in frames]
     path = np.array([scene.camera_pose(q).translation for q in qs])
     n = len(frames)
@@ -146,7 +149,7 @@ def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], flo
         spec = next(m for m in scene.markers(qs[0], path[a:b + 1]) if m.ns == 'camera_path')
         vis[f'{spec.ns}/{j}'].set_object(_object(spec, meshes))
     anim = Animation(default_framerate=fps)
-    for k, q in enumerate(qs):
+    for k, q in zip(ks, qs):
         with anim.at_frame(vis, k) as fr:
             for spec in scene.markers(q):
                 if spec.ns in MOVING:
@@ -154,14 +157,14 @@ def build_commands(scene: Scene, run: Run, fps: float) -> tuple[list[bytes], flo
     for j, (a, b) in enumerate(pieces):
         # hidden until the camera gets there; a key at the last frame too, so every clip
         # lasts the whole run
-        for k, shown in ((0, b == 0), (b, True), (n - 1, True)):
+        for k, shown in ((ks[0], b == 0), (ks[b], True), (ks[-1], True)):
             fr = anim.at_frame(vis, k)
             fr[f'camera_path/{j}'].set_property('visible', 'boolean', shown)
     # the viewer camera: meshcat's camera sits in a frame rotated +90° about x (y up)
     x, y, z = VIEW_FROM
     vis['/Cameras/default/rotated/<object>'].set_property('position', [x, z, -y])
     vis.set_animation(anim, play=True, repetitions=1)
-    return rec.commands, (n - 1) / fps
+    return rec.commands, ks[-1] / fps
 
 
 PAGE = """<!DOCTYPE html>
@@ -240,13 +243,16 @@ def make_replay(run: Run, scene: Scene, out: Path) -> tuple[Path, dict]:
     fps = run.frame_rate()
     commands, duration = build_commands(scene, run, fps)
     d = run.desired
+    posed = sum(st in run.joints for st in run.frames)
+    lost = '' if posed == len(run.frames) else \
+        f' ({len(run.frames) - posed} without a recorded joint state: interpolated)'
     info = (f'<b>{html.escape(run.path.parent.name or str(run.path))}</b>: '
-            f'{len(run.frames)} frames, {duration:.1f} s. Orange: camera and its frustum; '
+            f'{len(run.frames)} frames{lost}, {duration:.1f} s. Orange: camera and its frustum; '
             f'yellow: its path; green: the desired camera'
             + (f' ({html.escape(d.how)} image)' if d else ' (scenario)') +
             '. Play / pause / time: <i>Animations</i>, top right.')
     path = write_page(commands, out, f'replay: {run.path}', info)
-    return path, {'frames': len(run.frames), 'duration': duration, 'fps': fps,
+    return path, {'frames': len(run.frames), 'posed': posed, 'duration': duration, 'fps': fps,
                   'seconds': time.monotonic() - t0, 'bytes': path.stat().st_size}
 
 
@@ -271,8 +277,11 @@ def main(argv=None) -> int:
         path, figs = make_replay(run, scene, out)
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('replay3d', err)
+    missing = figs['frames'] - figs['posed']
     print(f'replay3d: {figs["frames"]} frames ({figs["duration"]:.1f} s at {figs["fps"]:g} '
-          f'fps) in {figs["seconds"]:.1f} s')
+          f'fps) in {figs["seconds"]:.1f} s'
+          + (f'; {missing} frames have no recorded joint state (interpolated)' if missing
+             else ''))
     print(f'  {path} ({figs["bytes"] / 1e6:.1f} MB)')
     return 0
 
