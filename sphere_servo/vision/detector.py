@@ -1,20 +1,27 @@
 """
-Detector (no ROS): image → the sphere's conic + the marks' image points. DESIGN.md §2.
+Detector (no ROS): image → the target's conic + the marks' image points. DESIGN.md §2.
 
 For one ``rgb8`` / ``bgr8`` / ``mono8`` image and the intrinsics it is *given* (possibly
 wrong, for the calibration-error experiment — the detector just uses them):
 
 1. :mod:`~sphere_servo.vision.image` checks the image;
-2. :mod:`~sphere_servo.vision.silhouette` finds the sphere's blob and fits the conic of its
-   sub-pixel edge, in pixels;
-3. the conic in *normalized* coordinates gives the sphere
-   (:func:`~sphere_servo.core.measurement.sphere_from_conic`);
-4. :mod:`~sphere_servo.vision.marks` finds the marks by colour and measures their centres
-   on that sphere.
+2. :mod:`~sphere_servo.vision.silhouette` yields candidate blobs (global and local
+   thresholds, :mod:`~sphere_servo.vision.blobs`) with the sub-pixel conic of each, in
+   pixels, the most sphere-like first;
+3. a candidate within the calibrated :class:`~sphere_servo.vision.scoring.FitBounds`
+   (residual, edge coverage, departure from a sphere's image) gives the sphere, from its
+   conic in *normalized* coordinates (:func:`~sphere_servo.core.measurement.sphere_from_conic`);
+4. :mod:`~sphere_servo.vision.marks` finds the marks by colour on that sphere and measures
+   their centres; they must lie on it and fit the target's geometry
+   (:class:`~sphere_servo.vision.scoring.MarkGeometry`).
 
-:class:`Detector` holds the configuration (the target's colours) and returns a
-:class:`Detection`; when there is no usable target, ``found`` is False and
-``not_detected`` says why (a :class:`~sphere_servo.vision.silhouette.Reason` and a detail).
+The first candidate whose marks are all found and consistent is the target (a distractor —
+another sphere, a disc, a bright patch of background — has no such marks). Otherwise the
+candidate with the most marks is; one with no mark only when it is the only sphere-like
+blob in view (several: ambiguous, not detected). A fit outside the bounds is never
+published. When nothing is chosen, ``found`` is False and ``not_detected`` says why (a
+:class:`~sphere_servo.vision.reasons.Reason` and a detail) for the candidate that came
+closest.
 """
 from __future__ import annotations
 
@@ -29,7 +36,9 @@ from sphere_servo.core.measurement import (MeasurementError, Observation, sphere
 from sphere_servo.core.targets import mark_names, SPECIAL, Target
 from sphere_servo.vision.image import check_image, image_from_buffer
 from sphere_servo.vision.marks import Mark, MarkFinder
-from sphere_servo.vision.silhouette import NotDetected, Reason, Silhouette, SilhouetteFinder
+from sphere_servo.vision.reasons import NotDetected, Reason
+from sphere_servo.vision.scoring import FitBounds, MarkGeometry
+from sphere_servo.vision.silhouette import Silhouette, SilhouetteFinder
 
 DEFAULT_COLORS = {'body': (235, 235, 225), 'P1': (220, 30, 30), 'P2': (30, 60, 220)}
 
@@ -44,13 +53,14 @@ class Detection:
     conic          3×3 conic of the sphere's image in NORMALIZED image coordinates
                    (``x̄ᵀ C x̄ = 0``, unit Frobenius norm), or None.
     sphere         :class:`SphereMeasurement` from the conic (b, r_δ, quality), or None.
-    quality        eigenvalue spread of the conic (0 for a perfect sphere image).
+    quality        eigenvalue spread of the conic (0 for a perfect sphere image); a published
+                   fit is within the detector's calibrated bounds.
     residual_px    RMS distance (px) of the kept edge points to the fitted ellipse.
     ellipse_px     ``((u_c, v_c), (full_axis_1, full_axis_2), angle_deg)`` for cv2.ellipse.
     marks          name → :class:`~sphere_servo.vision.marks.Mark`.
     cut_by_border  the silhouette touches the image border (fit on the free contour only).
     n_edge_points  edge points used by the final fit.
-    not_detected   why not found (:class:`~sphere_servo.vision.silhouette.NotDetected`),
+    not_detected   why not found (:class:`~sphere_servo.vision.reasons.NotDetected`),
                    None when found.
     """
 
@@ -84,9 +94,9 @@ class Detection:
         q = {}
         for name in names:
             m = self.marks.get(name)
-            if m is None or not m.visible:
+            if m is None:
                 raise MeasurementError(f'mark {name} is not visible')
-            q[name] = m.q
+            q[name] = m.q                  # raises why it is not visible
         return Observation(self.sphere, q, kind)
 
 
@@ -106,13 +116,41 @@ def camera_intrinsics(camera) -> tuple[float, float, float, float]:
     return tuple(vals)
 
 
+# the stages a candidate goes through; a miss further on says more about the image
+_STAGE = {Reason.NO_BLOB: 0, Reason.TOO_SMALL: 1, Reason.CUT_BY_BORDER: 2,
+          Reason.NOT_BODY_COLOURED: 3, Reason.NOT_ELLIPTICAL: 4, Reason.LOW_CONTRAST: 5,
+          Reason.FEW_EDGE_POINTS: 5, Reason.EDGE_COVERAGE: 6, Reason.RESIDUAL: 6,
+          Reason.NOT_A_SPHERE: 7, Reason.MARKS_INCONSISTENT: 8}
+
+
+@dataclass
+class _Candidate:
+    """A candidate that passed the bounds: its silhouette, conic, sphere and marks."""
+
+    sil: Silhouette
+    C_n: np.ndarray
+    sphere: SphereMeasurement
+    marks: dict
+    n_marks: int
+
+    def contains(self, u: float, v: float) -> bool:
+        """Tell whether the pixel (u, v) lies inside its silhouette."""
+        C = self.sil.conic_px
+        p, c = np.array([u, v, 1.0]), np.array([*self.sil.ellipse.centre, 1.0])
+        return float(p @ C @ p) * float(c @ C @ c) > 0
+
+
 class Detector:
     """
-    Sphere + marks detector, configured by the colours of the body and the marks.
+    Sphere + marks detector, configured by the target's description.
 
     colors          {'body': rgb, 'P1': rgb, 'P2' or 'P3': rgb} (rgb8 triplets).
     surface_marks   names of marks painted on the surface (centre by back-projection on the
                     sphere); the others (the CC tip 'P3') use the image of their centre.
+    geometry        the marks' :class:`~sphere_servo.vision.scoring.MarkGeometry` (None: the
+                    marks are not checked against each other).
+    bounds          the :class:`~sphere_servo.vision.scoring.FitBounds` of a published fit.
+    max_fits        largest number of candidates fitted in one image.
     min_area_px, min_contrast, body_chroma_tol, K, max_edge_points, coarse_step
                     the silhouette's (:class:`~sphere_servo.vision.silhouette.SilhouetteFinder`).
     chroma_tol, min_mark_px, mark_radius
@@ -120,7 +158,8 @@ class Detector:
     """
 
     def __init__(self, colors: dict | None = None, surface_marks=('P1', 'P2'), *,
-                 min_area_px: float = 30.0, min_contrast: float = 25.0,
+                 geometry: MarkGeometry | None = None, bounds: FitBounds | None = None,
+                 max_fits: int = 8, min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
                  min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 100,
                  coarse_step: int = 4, mark_radius: float = float(np.radians(9.0))):
@@ -134,47 +173,110 @@ class Detector:
         self.marks = MarkFinder(self.colors, surface_marks, chroma_tol=chroma_tol,
                                 min_mark_px=min_mark_px, mark_radius=mark_radius)
         self.mark_names = self.marks.mark_names
+        self.geometry = geometry
+        self.bounds = FitBounds() if bounds is None else bounds
+        self.max_fits = int(max_fits)
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'Detector':
-        """Build the detector for the colours and mark names of ``target``."""
+        """
+        Build the detector of ``target``: its colours, mark names, cap radius, marks' layout.
+
+        The fit bounds follow the body's shape (:meth:`FitBounds.for_target`).
+        """
         a, b = target.mark_names
         cols = target.colors
         colors = {'body': cols['body'], a: cols[a], b: cols.get(b, cols.get('P2'))}
         surface = (a, b) if target.kind == SPECIAL else (a,)
         kw.setdefault('mark_radius', target.mark_radius)
+        kw.setdefault('geometry', MarkGeometry.for_target(target))
+        kw.setdefault('bounds', FitBounds.for_target(target))
         return cls(colors, surface, **kw)
 
     def detect(self, image: np.ndarray, encoding: str, camera) -> Detection:
         """
-        Detect the sphere and the marks in ``image`` with the intrinsics ``camera``.
+        Detect the target and its marks in ``image`` with the intrinsics ``camera``.
 
         ``image``: (H, W, 3) for rgb8/bgr8, (H, W) or (H, W, 1) for mono8, uint8;
         ``camera``: anything with px, py, u0, v0 (a :class:`CameraIntrinsics`). Raises
         ``ValueError`` on a bad image/encoding/intrinsics; returns ``Detection(found=False,
-        not_detected=...)`` when there is no usable target.
+        not_detected=...)`` when there is no usable target (module docstring: the choice).
         """
         intr = camera_intrinsics(camera)
         img = check_image(image, encoding)
         rgb = None if img.ndim == 2 else (img if encoding == 'rgb8' else img[..., ::-1])
-        sil = self.silhouette.find(img, rgb)
-        if isinstance(sil, NotDetected):
-            return Detection.missed(sil, self.marks.not_visible())
+        found = self.silhouette.candidates(img, rgb)
+        if isinstance(found, NotDetected):
+            return Detection.missed(found, self.marks.not_visible())
+        blobs, s = found
+        miss, accepted, fitted = None, [], 0
+        for blob in blobs:
+            if fitted >= self.max_fits:
+                break
+            u, v = blob.centre(s)
+            if any(c.contains(u, v) for c in accepted):
+                continue                    # a part, or another level, of one we have
+            sil = self.silhouette.fit(blob, img, rgb, s)
+            if not isinstance(sil, NotDetected):
+                fitted += 1
+                sil = self._candidate(sil, img, encoding, rgb, intr)
+            if isinstance(sil, NotDetected):
+                if miss is None or _STAGE[sil.reason] > _STAGE[miss.reason]:
+                    miss = sil
+                continue
+            if sil.n_marks == len(self.mark_names):
+                return self._found(sil)                 # the target: all its marks fit
+            accepted.append(sil)
+        if accepted:
+            best = max(accepted, key=lambda c: c.n_marks)
+            if best.n_marks == 0 and len(accepted) > 1:
+                return Detection.missed(
+                    NotDetected(Reason.AMBIGUOUS, f'{len(accepted)} of them'),
+                    self.marks.not_visible())
+            return self._found(best)
+        # no blob with a contrasted edge, and the frame is the body's colour and bright
+        early = miss is None or _STAGE[miss.reason] <= _STAGE[Reason.LOW_CONTRAST]
+        if rgb is not None and early and self.silhouette.fills_frame(rgb):
+            miss = NotDetected(Reason.TOO_LARGE, 'the body fills the frame')
+        return Detection.missed(miss or NotDetected(Reason.NO_BLOB), self.marks.not_visible())
+
+    def _candidate(self, sil: Silhouette, img, encoding: str, rgb, intr
+                   ) -> '_Candidate | NotDetected':
+        """Check one fitted silhouette against the bounds and measure its marks."""
+        why = self.bounds.check(sil)
+        if why is not None:
+            return why
         C_n = conic_pixels_to_normalized(sil.conic_px, *intr)
         try:
             sphere = sphere_from_conic(C_n)
         except MeasurementError as exc:
-            return Detection.missed(NotDetected(Reason.NOT_A_SPHERE, str(exc)),
-                                    self.marks.not_visible())
-        return self._found(sil, C_n, sphere,
-                           self.marks.find(img, encoding, rgb, sphere, sil, intr))
+            return NotDetected(Reason.NOT_A_SPHERE, str(exc))
+        why = self.bounds.check(sil, sphere)
+        if why is not None:
+            return why
+        marks = self.marks.find(img, encoding, rgb, sphere, sil, intr)
+        q = {}
+        for name, m in marks.items():
+            if not m.visible:
+                continue
+            if name in self.marks.surface_marks and self.geometry is not None \
+                    and not self.geometry.on_sphere(sphere, m.q):
+                marks[name] = Mark.lost(name, Reason.MARK_OFF_SPHERE, area_px=m.area_px)
+                continue
+            q[name] = m.q
+        if self.geometry is not None and len(q) == len(self.geometry.names) \
+                and set(q) == set(self.geometry.names):
+            why = self.geometry.check(sphere, q)
+            if why is not None:
+                return why
+        return _Candidate(sil, C_n, sphere, marks, len(q))
 
     @staticmethod
-    def _found(sil: Silhouette, C_n: np.ndarray, sphere: SphereMeasurement,
-               marks: dict) -> Detection:
+    def _found(cand: _Candidate) -> Detection:
+        sil, sphere = cand.sil, cand.sphere
         c, ax, ang = sil.ellipse
-        return Detection(True, '', C_n, sphere, sphere.quality, sil.rms_px,
-                         (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), marks,
+        return Detection(True, '', cand.C_n, sphere, sphere.quality, sil.rms_px,
+                         (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), cand.marks,
                          sil.cut_by_border, sil.n_points)
 
 

@@ -1,0 +1,147 @@
+"""
+Is a candidate the target? Calibrated fit bounds and the marks' geometry (no ROS).
+
+The detector publishes a silhouette only inside :class:`FitBounds`, and only with marks
+that fit the target (:class:`MarkGeometry`). DESIGN.md §2.
+
+**The bounds** (calibration: see :class:`FitBounds`):
+
+- ``min_coverage``: the fraction of the edge profiles that gave a kept edge point (the
+  edge is contrasted and body-coloured all around);
+- ``max_rms_px``: the RMS Sampson distance of the kept edge points (px);
+- ``max_quality``: the departure of the fitted conic from a sphere's image (the relative
+  spread of its two "equal" eigenvalues, about twice the relative error between the axes
+  of the sphere's image).
+
+A non-spherical body (the balloon) is servoed as a sphere on purpose: its own silhouette is
+not a sphere's image, so its quality bound is widened by the body's shape
+(:meth:`FitBounds.for_target`).
+
+**The marks**: a surface mark's centre must lie inside the sphere's silhouette (its ray
+meets the sphere), and two marks must sit on the measured sphere as on the target: the
+angle between the surface normals at P1 and P2 (special), or the length of the tangent
+stick P1P3 in units of r (CC).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.measurement import P3_over_r, P_over_r, SphereMeasurement
+from sphere_servo.core.targets import CC, Target
+from sphere_servo.vision.reasons import NotDetected, Reason
+from sphere_servo.vision.silhouette import Silhouette
+
+
+@dataclass(frozen=True)
+class FitBounds:
+    """
+    The bounds outside which a silhouette is never published (see the module).
+
+    CALIBRATION: TO BE WRITTEN.
+    """
+
+    max_rms_px: float = 0.5
+    min_coverage: float = 0.6
+    max_quality: float = 0.25
+
+    @classmethod
+    def for_target(cls, target: Target, **kw) -> 'FitBounds':
+        """
+        Bounds for ``target``.
+
+        A non-spherical body's silhouette differs from a sphere's image by its own shape,
+        a relative axis difference up to ``(a_max − a_min)/a_min``, i.e. a quality up to
+        about twice that: the quality bound is widened to twice that again.
+        """
+        if target.axes is not None:
+            ax = np.asarray(target.axes, float)
+            kw.setdefault('max_quality', max(cls.max_quality,
+                                             4.0 * float(ax.max() - ax.min()) / float(ax.min())))
+        return cls(**kw)
+
+    def check(self, sil: Silhouette, sphere: SphereMeasurement | None = None
+              ) -> NotDetected | None:
+        """Return the first bound ``sil`` (and its ``sphere``) breaks, as a miss; None if none."""
+        if sil.coverage < self.min_coverage:
+            return NotDetected(Reason.EDGE_COVERAGE,
+                               f'{sil.coverage:.0%} of it < {self.min_coverage:.0%}')
+        if sil.rms_px > self.max_rms_px:
+            return NotDetected(Reason.RESIDUAL, f'{sil.rms_px:.2f} px > {self.max_rms_px} px')
+        if sphere is not None and sphere.quality > self.max_quality:
+            return NotDetected(Reason.NOT_A_SPHERE,
+                               f'quality {sphere.quality:.3g} > {self.max_quality}')
+        return None
+
+
+@dataclass(frozen=True)
+class MarkGeometry:
+    """
+    Where the target's marks are relative to each other, to check a candidate's marks.
+
+    kind          'special' or 'cc'.
+    names         the two marks (P1, P2) or (P1, P3).
+    cos_angle     cosine of the angle between the surface normals at P1 and P2 (special).
+    stick_r       ``‖P3 − P1‖ / r`` (cc).
+    angle_tol     largest error of that angle (rad).
+    stick_tol     largest relative error of that length.
+    off_sphere    how far (rad) outside the silhouette cone a surface mark's centre may be
+                  measured (noise at the limb).
+    """
+
+    kind: str
+    names: tuple
+    cos_angle: float
+    stick_r: float
+    angle_tol: float = math.radians(8.0)
+    stick_tol: float = 0.25
+    off_sphere: float = 0.003
+
+    @classmethod
+    def for_target(cls, target: Target, **kw) -> 'MarkGeometry':
+        n1 = target.surface_normal(target.oP1)
+        n2 = target.surface_normal(target.oP2)
+        stick = float(np.linalg.norm(target.oP2 - target.oP1)) / target.radius
+        if target.axes is not None:
+            # the marks are measured as if on a sphere: the body's shape bends the angle
+            kw.setdefault('angle_tol', math.radians(15.0))
+        return cls(target.kind, target.mark_names, float(n1 @ n2), stick, **kw)
+
+    def on_sphere(self, sphere: SphereMeasurement, q: np.ndarray) -> bool:
+        """Tell whether the ray ``q`` meets the sphere (inside its silhouette cone, with slack)."""
+        cos_theta = math.sqrt(max(0.0, 1.0 - sphere.r_delta ** 2))
+        ang = math.acos(min(1.0, float(sphere.b @ q)))
+        return ang <= math.acos(cos_theta) + self.off_sphere
+
+    def check(self, sphere: SphereMeasurement, q: dict) -> NotDetected | None:
+        """
+        Check two measured mark rays ``q`` (name → unit vector) against the target.
+
+        Returns the miss (MARKS_INCONSISTENT, with the figures) or None.
+        """
+        a, b = self.names
+        try:
+            P1 = P_over_r(sphere, q[a])
+            if self.kind == CC:
+                P3 = P3_over_r(sphere, P1, q[b])
+                got = float(np.linalg.norm(P3 - P1))
+                if abs(got - self.stick_r) > self.stick_tol * self.stick_r:
+                    return NotDetected(Reason.MARKS_INCONSISTENT,
+                                       f"stick P1P3 {got:.2f} r, the target's "
+                                       f'{self.stick_r:.2f} r')
+                return None
+            P2 = P_over_r(sphere, q[b])
+        except GeometryError as exc:
+            return NotDetected(Reason.MARKS_INCONSISTENT, str(exc))
+        n1, n2 = P1 - sphere.s_nt, P2 - sphere.s_nt
+        c = float(n1 @ n2) / max(float(np.linalg.norm(n1) * np.linalg.norm(n2)), 1e-300)
+        got = math.acos(max(-1.0, min(1.0, c)))
+        want = math.acos(max(-1.0, min(1.0, self.cos_angle)))
+        if abs(got - want) > self.angle_tol:
+            return NotDetected(Reason.MARKS_INCONSISTENT,
+                               f'{a}–{b} {math.degrees(got):.1f}° apart on the sphere, the '
+                               f"target's {math.degrees(want):.1f}°")
+        return None
