@@ -7,9 +7,13 @@ blobs are found in the image subsampled by ``s`` (nearest), in coarse pixels:
 1. the global Otsu level of V separates the bright blobs (outer contours: holes are
    ignored);
 2. a blob whose contour is not elliptical may be the sphere merged with bright background
-   (a checker square, a blotch of texture, a clutter shape): when the values of V inside it
-   are bimodal, it is split again at a threshold *local to it*, just above its lower
-   class (the background inside the merge), and its parts become candidates in turn.
+   (a checker square, a blotch of texture, a clutter shape): it is split into its pixels
+   of the sphere's colours, and, when the values of V inside it are bimodal, again at a
+   threshold *local to it*, just above its lower class (the background inside the merge);
+   its parts become candidates in turn;
+3. on demand (:meth:`BlobFinder.grow`), an elliptical blob is grown down to a level local
+   to it, just above the background around it, when a higher level may have cut into the
+   sphere's shaded side.
 
 Each :class:`Blob` carries its contour, the level that separated it and how elliptical its
 contour is; the silhouette's fit (:mod:`~sphere_servo.vision.silhouette`) and the
@@ -42,8 +46,9 @@ class Blob:
     free         (M,) bool: the contour points not on the image border.
     threshold    level of V that separated it (grey levels).
     area         its area (coarse px²).
-    level        0 for the global threshold, k after k local splits.
+    level        0 for the global threshold, k after k local splits (or a growth).
     ellipticity  fraction of its free contour within tolerance of that contour's ellipse.
+    grown        grown down from another blob (:meth:`BlobFinder.grow`).
     """
 
     contour: np.ndarray
@@ -52,6 +57,7 @@ class Blob:
     area: float
     level: int
     ellipticity: float
+    grown: bool = False
 
     def centre(self, s: int) -> tuple[float, float]:
         """Mean of its contour points, in full-resolution pixels (found at step ``s``)."""
@@ -130,14 +136,17 @@ class BlobFinder:
                     split (grey levels).
     max_blobs       largest number of blobs taken from one threshold of one region.
     max_level       largest number of nested local splits.
+    coloured        ``(ys, xs) → (N,) bool``: the coarse pixels that have the sphere's colours
+                    (body or marks); None (mono8) for no colour split.
     """
 
     def __init__(self, min_area: float, min_contrast: float, max_blobs: int = 8,
-                 max_level: int = 2):
+                 max_level: int = 2, coloured=None):
         self.min_area = float(min_area)
         self.min_contrast = float(min_contrast)
         self.max_blobs = int(max_blobs)
         self.max_level = int(max_level)
+        self.coloured = coloured
 
     def level(self, vals: np.ndarray) -> tuple[float, float] | None:
         """
@@ -186,33 +195,35 @@ class BlobFinder:
             out.append(Blob(pts, free, thr, area, level, e))
             if e < ELLIPTICAL and level < self.max_level:
                 self._split(Vs, c, thr, level, out)
-            else:
-                self._grow(Vs, c, thr, level, area, out)
 
-    def _grow(self, Vs, c, thr: float, level: int, area: float, out: list) -> None:
+    def grow(self, Vs: Image, blob: Blob) -> Blob | None:
         """
         Grow an elliptical blob down to a threshold local to it, if that is lower.
 
         A level set for the whole image (or for a merge) can cut into the sphere's shaded
-        side. Around the blob (its box grown by a quarter), the background's bright end is
-        the 90th percentile of V outside it; the local threshold is that plus
-        ``min_contrast / 2``. The blob's component at that level is a candidate too, if it
-        is still elliptical (not merged with the background).
+        side. Around the blob, beyond a band of 0.3 of its radius (where the cut-off shaded
+        side lies), the background's bright end is the 90th percentile of V; the local
+        threshold is that plus ``min_contrast / 2``. The blob's component at that level is
+        a candidate too, if it is still elliptical (not merged with the background): the
+        grown blob, or None.
         """
         hs, ws = Vs.shape
+        c, thr, area = blob.contour.reshape(-1, 1, 2), blob.threshold, blob.area
         x, y, w, h = cv2.boundingRect(c)
-        g = max(2, (max(w, h) + 3) // 4)
+        band = max(1, int(round(0.3 * math.sqrt(area / math.pi))))
+        g = max(2, (max(w, h) + 3) // 4) + band
         x0, y0, x1, y1 = max(0, x - g), max(0, y - g), min(ws, x + w + g), min(hs, y + h + g)
         fill = np.zeros((y1 - y0, x1 - x0), np.uint8)
         cv2.drawContours(fill, [c], 0, 255, -1, offset=(-x0, -y0))
+        cv2.drawContours(fill, [c], 0, 255, 2 * band + 1, offset=(-x0, -y0))
         crop = Vs[y0:y1, x0:x1]
         ring = crop[fill == 0]
         if ring.size < 8:
-            return
+            return None
         k = int(0.9 * (ring.size - 1))
         t = float(np.partition(ring, k)[k]) + 0.5 * self.min_contrast
         if t > thr - 2.0:
-            return
+            return None
         sub = (crop > t).view(np.uint8)
         contours, _ = cv2.findContours(sub, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE,
                                        offset=(x0, y0))
@@ -225,12 +236,13 @@ class BlobFinder:
                         & (pts[:, 1] < hs - 1))
                 e = ellipticity(pts[free], bool(free.all()))
                 if a > area and e >= ELLIPTICAL:
-                    out.append(Blob(pts, free, t, a, level + 1, e))
-                return
+                    return Blob(pts, free, t, a, blob.level + 1, e, grown=True)
+                return None
+        return None
 
     def _split(self, Vs, c, thr: float, level: int, out: list) -> None:
         """
-        Split a blob at a threshold local to it, if the V inside it is bimodal.
+        Split a blob by colour, and at a threshold local to it if the V inside it is bimodal.
 
         Otsu's level of the values inside the blob separates a lower class (the background
         merged with the sphere) from an upper one; the local threshold is just above the
@@ -244,6 +256,15 @@ class BlobFinder:
         # the blob's own pixels (its holes are not in it: a blob merged with a texture
         # surrounds darker background)
         inside = (fill > 0) & (crop > thr)
+        if self.coloured is not None:
+            # coloured clutter merged with the sphere (as bright as its shaded side, so that
+            # no level separates them): keep the pixels of the sphere's colours
+            yy, xx = np.nonzero(inside)
+            col = self.coloured(yy + y, xx + x)
+            if np.count_nonzero(~col) >= 0.05 * len(col):
+                sub = np.zeros_like(fill)
+                sub[yy[col], xx[col]] = 1
+                self._collect(Vs, sub, thr, level + 1, (x, y), out)
         vals = crop[inside]
         if vals.size < 2 * self.min_area:
             return

@@ -25,19 +25,20 @@ closest.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
 
-from sphere_servo.core.conics import conic_pixels_to_normalized
+from sphere_servo.core.conics import (conic_pixels_to_normalized, ellipse_params, fit_conic,
+                                      sampson_homogeneous)
 from sphere_servo.core.measurement import (MeasurementError, Observation, sphere_from_conic,
                                            SphereMeasurement)
 from sphere_servo.core.targets import mark_names, SPECIAL, Target
 from sphere_servo.vision.image import check_image, image_from_buffer
 from sphere_servo.vision.marks import Mark, MarkFinder
 from sphere_servo.vision.reasons import NotDetected, Reason
-from sphere_servo.vision.scoring import FitBounds, MarkGeometry
+from sphere_servo.vision.scoring import FitBounds, foreign_arc, MarkGeometry
 from sphere_servo.vision.silhouette import Silhouette, SilhouetteFinder
 
 DEFAULT_COLORS = {'body': (235, 235, 225), 'P1': (220, 30, 30), 'P2': (30, 60, 220)}
@@ -123,6 +124,13 @@ _STAGE = {Reason.NO_BLOB: 0, Reason.TOO_SMALL: 1, Reason.CUT_BY_BORDER: 2,
           Reason.NOT_A_SPHERE: 7, Reason.MARKS_INCONSISTENT: 8}
 
 
+def _inside(sil: Silhouette, u: float, v: float) -> bool:
+    """Tell whether the pixel (u, v) lies inside the silhouette ``sil``."""
+    C = sil.conic_px
+    p, c = np.array([u, v, 1.0]), np.array([*sil.ellipse.centre, 1.0])
+    return float(p @ C @ p) * float(c @ C @ c) > 0
+
+
 @dataclass
 class _Candidate:
     """A candidate that passed the bounds: its silhouette, conic, sphere and marks."""
@@ -132,12 +140,7 @@ class _Candidate:
     sphere: SphereMeasurement
     marks: dict
     n_marks: int
-
-    def contains(self, u: float, v: float) -> bool:
-        """Tell whether the pixel (u, v) lies inside its silhouette."""
-        C = self.sil.conic_px
-        p, c = np.array([u, v, 1.0]), np.array([*self.sil.ellipse.centre, 1.0])
-        return float(p @ C @ p) * float(c @ C @ c) > 0
+    sure: bool = False
 
 
 class Detector:
@@ -150,7 +153,7 @@ class Detector:
     geometry        the marks' :class:`~sphere_servo.vision.scoring.MarkGeometry` (None: the
                     marks are not checked against each other).
     bounds          the :class:`~sphere_servo.vision.scoring.FitBounds` of a published fit.
-    max_fits        largest number of candidates fitted in one image.
+    max_fits        largest number of sphere-like objects fitted in one image.
     min_area_px, min_contrast, body_chroma_tol, K, max_edge_points, coarse_step
                     the silhouette's (:class:`~sphere_servo.vision.silhouette.SilhouetteFinder`).
     chroma_tol, min_mark_px, mark_radius
@@ -169,7 +172,8 @@ class Detector:
         self.silhouette = SilhouetteFinder(
             self.colors['body'], min_area_px=min_area_px, min_contrast=min_contrast,
             body_chroma_tol=body_chroma_tol, K=K, max_edge_points=max_edge_points,
-            coarse_step=coarse_step)
+            coarse_step=coarse_step,
+            marks=[c for k, c in self.colors.items() if k != 'body'], mark_chroma_tol=chroma_tol)
         self.marks = MarkFinder(self.colors, surface_marks, chroma_tol=chroma_tol,
                                 min_mark_px=min_mark_px, mark_radius=mark_radius)
         self.mark_names = self.marks.mark_names
@@ -208,30 +212,43 @@ class Detector:
         found = self.silhouette.candidates(img, rgb)
         if isinstance(found, NotDetected):
             return Detection.missed(found, self.marks.not_visible())
-        blobs, s = found
-        miss, accepted, fitted = None, [], 0
-        for blob in blobs:
-            if fitted >= self.max_fits:
-                break
+        s = found.step
+        todo = list(reversed(found.blobs))              # a stack: the next one last
+        miss, accepted, seen = None, [], []
+        while todo and len(seen) < self.max_fits:
+            blob = todo.pop()
             u, v = blob.centre(s)
-            if any(c.contains(u, v) for c in accepted):
-                continue                    # a part, or another level, of one we have
+            if any(c.sure and _inside(c.sil, u, v) for c in accepted):
+                continue                    # a part, or another level, of a sure fit
             sil = self.silhouette.fit(blob, img, rgb, s)
             if not isinstance(sil, NotDetected):
-                fitted += 1
+                (cu, cv_), _, _ = sil.ellipse
+                if not any(_inside(o, cu, cv_) for o in seen):
+                    seen.append(sil)        # a sphere-like object (bounds or not)
                 sil = self._candidate(sil, img, encoding, rgb, intr)
+            if isinstance(sil, NotDetected) or not sil.sure:
+                # its level may have cut into the sphere's shaded side: try the blob grown
+                # down to the level of the background around it, next
+                grown = found.grown(blob)
+                if grown is not None:
+                    todo.append(grown)
             if isinstance(sil, NotDetected):
                 if miss is None or _STAGE[sil.reason] > _STAGE[miss.reason]:
                     miss = sil
                 continue
-            if sil.n_marks == len(self.mark_names):
-                return self._found(sil)                 # the target: all its marks fit
+            if sil.sure and sil.n_marks == len(self.mark_names):
+                return self._found(sil)     # the target: a sure fit, all its marks fit
             accepted.append(sil)
         if accepted:
-            best = max(accepted, key=lambda c: c.n_marks)
-            if best.n_marks == 0 and len(accepted) > 1:
+            # most marks, then the edge contrasted around most of the contour, then the
+            # tightest fit (of the levels of one object, the one that does not cut into its
+            # shaded side); pixel figures only, so the choice does not depend on the
+            # intrinsics the detector is given
+            best = min(accepted, key=lambda c: (-c.n_marks, -c.sil.coverage, c.sil.rms_px))
+            if best.n_marks == 0 and len(seen) > 1:
+                # a sphere without marks among other sphere-like objects: which is it?
                 return Detection.missed(
-                    NotDetected(Reason.AMBIGUOUS, f'{len(accepted)} of them'),
+                    NotDetected(Reason.AMBIGUOUS, f'{len(seen)} in view'),
                     self.marks.not_visible())
             return self._found(best)
         # no blob with a contrasted edge, and the frame is the body's colour and bright
@@ -251,6 +268,9 @@ class Detector:
             sphere = sphere_from_conic(C_n)
         except MeasurementError as exc:
             return NotDetected(Reason.NOT_A_SPHERE, str(exc))
+        if sil.edge is not None and (sphere.quality > self.bounds.refit_quality
+                                     or not self.bounds.sure(sil)):
+            sil, C_n, sphere = self._drop_foreign_arc(sil, C_n, sphere, intr)
         why = self.bounds.check(sil, sphere)
         if why is not None:
             return why
@@ -269,7 +289,41 @@ class Detector:
             why = self.geometry.check(sphere, q)
             if why is not None:
                 return why
-        return _Candidate(sil, C_n, sphere, marks, len(q))
+        return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil))
+
+    @staticmethod
+    def _drop_foreign_arc(sil: Silhouette, C_n, sphere: SphereMeasurement, intr):
+        """
+        Refit without a foreign arc of edge, if there is one and that makes a sphere's image.
+
+        (:func:`~sphere_servo.vision.scoring.foreign_arc`.) The conic of the other points
+        replaces the first one only when at least half the points remain and its quality is
+        at most a third of the first one's.
+        """
+        px, py, u0, v0 = intr
+        E = sil.edge
+        X = np.array([(E[0] - u0) / px, (E[1] - v0) / py, np.ones(E.shape[1])])
+        X /= np.sqrt((X * X).sum(axis=0))
+        keep = foreign_arc(X, 0.5 * (px + py))
+        if keep is None:
+            return sil, C_n, sphere
+        nk = int(np.count_nonzero(keep))
+        if nk < max(10, 0.5 * len(keep)):
+            return sil, C_n, sphere
+        Ek = E[:, keep]
+        C_px = fit_conic(Ek[:2].T)
+        ep = ellipse_params(C_px)
+        C2 = conic_pixels_to_normalized(C_px, *intr)
+        try:
+            sphere2 = sphere_from_conic(C2)
+        except MeasurementError:
+            return sil, C_n, sphere
+        if ep is None or sphere2.quality > sphere.quality / 3.0:
+            return sil, C_n, sphere
+        d = sampson_homogeneous(C_px, Ek)
+        rms = math.sqrt(float(d @ d) / nk)
+        return (replace(sil, conic_px=C_px, rms_px=rms, n_points=nk, ellipse=ep,
+                        coverage=nk / max(sil.n_profiles, 1), edge=Ek), C2, sphere2)
 
     @staticmethod
     def _found(cand: _Candidate) -> Detection:

@@ -169,6 +169,8 @@ class MarkFinder:
 
     # a cap's (grown) pixels this close to the silhouette (px): the cap may be cut by the limb
     limb_px = 1.5
+    # a cap cut by the limb by more than this (rad) is not measured from its image centroid
+    max_cut = math.radians(2.0)
 
     def __init__(self, colors: dict, surface_marks, *, chroma_tol: float = 0.12,
                  min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0))):
@@ -353,15 +355,18 @@ class MarkFinder:
         unit normals (DESIGN.md §2, second lesson).
 
         ``rim`` (bool mask of the pixels on the cap's boundary with the body, away from the
-        silhouette) is given when the cap is cut by the limb: then the visible part's mean
-        is biased towards the camera, and the centre comes instead from the cap's boundary
-        circle, ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit
-        m, weights cos² i for the back-projection's sensitivity, outliers — the CC stick —
-        dropped) to the rim pixels' normals.
+        silhouette) is given when the cap's image touches the limb: then the visible part's
+        mean is biased towards the camera if the cap is cut, and the back-projection is
+        ill-conditioned there; the centre comes instead from the cap's boundary circle,
+        ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit m, weights
+        cos² i for the back-projection's sensitivity, outliers — the CC stick — dropped) to
+        the rim pixels' normals; when too little rim is seen for that (a small sphere),
+        from the cap's image centroid (:func:`~sphere_servo.vision.caps.match_centroid`:
+        the visible part of the cap of radius ``mark_radius`` about m, projected).
 
         Returns the image of ``s_n,t + m`` (m: the unit normal at the centre), or None when
-        the centre cannot be measured (it faces away from the camera, or too little rim is
-        visible).
+        the centre cannot be measured (it faces away from the camera, or the cap's model
+        finds no visible part).
         """
         k, rho, nn, cos_i = on_sphere(sphere, X, hits and rim is None)
         s_nt = sphere.s_nt
@@ -376,14 +381,15 @@ class MarkFinder:
         m = X @ (c * t) - float(c.sum()) * s_nt
         m /= max(math.sqrt(float(m @ m)), 1e-300)
         if rim is not None:
-            # near the limb: the rim's circle first where a stick may lie across the cap
-            # (its outliers are dropped), else the cap's image centroid (caps module)
-            m_rim = self._fit_rim(m, X, k, rho, nn, cos_i, s_nt, rim) if self.has_stick \
-                else None
-            if m_rim is None:
+            # near the limb: the rim's circle (outliers, e.g. the CC stick, dropped) or, when
+            # too little rim is seen (a small sphere), the cap's image centroid (caps)
+            m_rim = self._fit_rim(m, X, k, rho, nn, cos_i, s_nt, rim)
+            if m_rim is None and self._cut_by(sphere, m) < self.max_cut:
                 sw = float(w.sum())
                 m_rim = match_centroid(sphere, m, self.mark_radius,
                                        np.array([float(X[0] @ w) / sw, float(X[1] @ w) / sw]))
+                if m_rim is not None and self._cut_by(sphere, m_rim) >= self.max_cut:
+                    m_rim = None        # a cap mostly hidden: its centroid says too little
             if m_rim is None:
                 return None
             m = m_rim
@@ -391,6 +397,16 @@ class MarkFinder:
         if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
             return None
         return P[:2] / P[2]
+
+    def _cut_by(self, sphere: SphereMeasurement, m: np.ndarray) -> float:
+        """
+        Angle (rad) by which the cap of centre normal ``m`` reaches beyond the limb.
+
+        A surface point of normal n is seen iff ``n·(−b) > r_δ``; the cap's farthest point is
+        ``β + ρ`` from −b (β: the angle of m, ρ: the cap's radius). Negative: wholly seen.
+        """
+        beta = math.acos(max(-1.0, min(1.0, -float(m @ sphere.b))))
+        return beta + self.mark_radius - math.acos(sphere.r_delta)
 
     def _fit_rim(self, m, X, k, rho, nn, cos_i, s_nt, rim) -> np.ndarray | None:
         """Fit the unit normal m at the cap's centre to its rim pixels (:meth:`cap_centre`)."""

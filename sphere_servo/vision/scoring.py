@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from sphere_servo.core.conics import fit_circular_cone
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import P3_over_r, P_over_r, SphereMeasurement
 from sphere_servo.core.targets import CC, Target
@@ -47,6 +48,9 @@ class FitBounds:
     max_rms_px: float = 0.5
     min_coverage: float = 0.6
     max_quality: float = 0.25
+    sure_coverage: float = 0.8
+    sure_rms_px: float = 0.25
+    refit_quality: float = 0.03
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'FitBounds':
@@ -63,6 +67,15 @@ class FitBounds:
                                              4.0 * float(ax.max() - ax.min()) / float(ax.min())))
         return cls(**kw)
 
+    def sure(self, sil: Silhouette) -> bool:
+        """
+        Tell whether a fit is surely an object's whole silhouette (no need to look further).
+
+        The edge is contrasted around ``sure_coverage`` of it and fitted within
+        ``sure_rms_px`` (pixel figures: whatever the intrinsics).
+        """
+        return sil.coverage >= self.sure_coverage and sil.rms_px <= self.sure_rms_px
+
     def check(self, sil: Silhouette, sphere: SphereMeasurement | None = None
               ) -> NotDetected | None:
         """Return the first bound ``sil`` (and its ``sphere``) breaks, as a miss; None if none."""
@@ -75,6 +88,43 @@ class FitBounds:
             return NotDetected(Reason.NOT_A_SPHERE,
                                f'quality {sphere.quality:.3g} > {self.max_quality}')
         return None
+
+
+def foreign_arc(q: np.ndarray, px_per_rad: float, max_rms_px: float = 0.2,
+                rounds: int = 3) -> np.ndarray | None:
+    """
+    Find a foreign arc among the edge points whose unit rays are ``q`` (3, N), in order.
+
+    A general conic bends to an arc of edge that is not the sphere's (a clutter shape
+    touching it) and then departs from a sphere's image; the sphere's cone
+    (:func:`~sphere_servo.core.conics.fit_circular_cone`, 3 degrees of freedom) cannot, so
+    the arc stands out. Robust rounds: fit, the residual of each ray across the cone
+    (``(b·q − c)/sin θ``, in px), keep those within ``max(3σ, 0.5 px)`` (σ from the MAD).
+    Returns the (N,) bool mask of the points to keep only when what is dropped is one
+    contiguous arc (a contact, not the symmetric pattern of wrong intrinsics or of a
+    non-spherical body) and the rest lies on the cone within ``max_rms_px``; else None.
+    """
+    keep = np.ones(q.shape[1], bool)
+    for _ in range(rounds):
+        if np.count_nonzero(keep) < 6:
+            return None
+        b, c = fit_circular_cone(q[:, keep])
+        r = (b @ q - c) * (px_per_rad / max(math.sqrt(max(0.0, 1.0 - c * c)), 1e-9))
+        rk = r[keep]
+        med = float(np.median(rk))
+        sigma = 1.4826 * float(np.median(np.abs(rk - med)))
+        new = np.abs(r - med) < max(3.0 * sigma, 0.5)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    if keep.all():
+        return None
+    # runs of dropped points around the closed contour
+    starts = np.count_nonzero(~keep & np.roll(keep, 1))
+    rk = r[keep] - float(np.mean(r[keep]))
+    if starts != 1 or math.sqrt(float(rk @ rk) / len(rk)) > max_rms_px:
+        return None
+    return keep
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,8 @@ class Silhouette:
     coverage       fraction of the edge profiles on the image that gave a kept edge point
                    (1: the edge is contrasted and body-coloured all around).
     contrast       median step of V across the edge (grey levels).
+    edge           (3, n) the kept edge points, homogeneous pixels ``(u, v, 1)``.
+    n_profiles     edge profiles on the image.
     """
 
     conic_px: Conic
@@ -66,6 +68,28 @@ class Silhouette:
     threshold: float
     coverage: float = 1.0
     contrast: float = float('nan')
+    edge: np.ndarray | None = None
+    n_profiles: int = 0
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """
+    The candidate blobs of one image, the most sphere-like first.
+
+    blobs     the :class:`~sphere_servo.vision.blobs.Blob` list.
+    step      the subsampling they were found at (full-resolution pixel = step · coarse).
+    """
+
+    blobs: list
+    step: int
+    finder: BlobFinder
+    Vs: Image
+
+    def grown(self, blob: Blob) -> Blob | None:
+        """Return ``blob`` grown down to a level local to it (:meth:`BlobFinder.grow`)."""
+        return None if blob.grown or blob.ellipticity < ELLIPTICAL \
+            else self.finder.grow(self.Vs, blob)
 
 
 def robust_ellipse(pts: np.ndarray, min_keep: int, tol_min: float,
@@ -149,11 +173,15 @@ class SilhouetteFinder:
     K               half-length (px) of the edge profiles (sub-pixel step).
     max_edge_points largest number of edge points of the final fit.
     coarse_step     subsampling of the image in which the blob is found (1: none).
+    marks, mark_chroma_tol
+                    rgb8 colours of the marks and their chromaticity tolerance: a blob
+                    merged with coloured clutter is split into its pixels of the body's
+                    and the marks' colours (:class:`~sphere_servo.vision.blobs.BlobFinder`).
     """
 
     def __init__(self, body, *, min_area_px: float = 30.0, min_contrast: float = 25.0,
                  body_chroma_tol: float = 0.08, K: int = 3, max_edge_points: int = 100,
-                 coarse_step: int = 4):
+                 coarse_step: int = 4, marks=(), mark_chroma_tol: float = 0.12):
         self.min_area_px = float(min_area_px)
         self.min_contrast = float(min_contrast)
         self.body_chroma_tol = float(body_chroma_tol)
@@ -163,9 +191,16 @@ class SilhouetteFinder:
         self.body_chroma = to_chroma(np.asarray(body, float))
         Q, w = chroma_test(self.body_chroma, 1.5 * self.body_chroma_tol)
         self._body_test = {False: Q, True: np.ascontiguousarray(Q[::-1])}, w
+        # the sphere's colours (body and marks) in one product: (3, 4k), block weights (4k, k)
+        tests = [(Q, w)] + [chroma_test(to_chroma(np.asarray(c, float)), mark_chroma_tol)
+                            for c in marks]
+        Qs = np.hstack([t[0] for t in tests])
+        self._sphere_test = {False: Qs, True: np.ascontiguousarray(Qs[::-1])}
+        self._sphere_w = np.zeros((4 * len(tests), len(tests)), np.float32)
+        for i, (_, wi) in enumerate(tests):
+            self._sphere_w[4 * i:4 * i + 4, i] = wi
 
-    def candidates(self, img: Image, rgb: Image | None
-                   ) -> tuple[list[Blob], int] | NotDetected:
+    def candidates(self, img: Image, rgb: Image | None) -> 'Candidates | NotDetected':
         """
         Find the candidate blobs of ``img``, the most sphere-like first, and their step.
 
@@ -173,23 +208,36 @@ class SilhouetteFinder:
         found on a subsampled image (nearest: pixel (i, j) is pixel (s·i, s·j)), the
         elliptical ones first, then by decreasing area; :meth:`fit` works at full
         resolution along a blob's edge only. A tiny target is searched for at full
-        resolution when the coarse image has no blob large enough. Returns ``(blobs, s)``,
-        or why there is none.
+        resolution when the coarse image has no blob large enough. Returns the
+        :class:`Candidates`, or why there is none.
         """
         H, W = img.shape[:2]
         s = max(1, min(self.coarse_step, min(H, W) // 60))
-        blobs, _ = self._blobs(img, s)
+        finder, Vs = self._finder(img, rgb, s)
+        blobs, _ = finder.find(Vs)
         if not blobs and s > 1:
             s = 1                                       # a tiny target: full resolution
-            blobs, _ = self._blobs(img, s)
+            finder, Vs = self._finder(img, rgb, s)
+            blobs, _ = finder.find(Vs)
         if not blobs:
             return self._no_blob(img, rgb, s)
         blobs.sort(key=lambda b: (b.ellipticity < ELLIPTICAL, -b.area))
-        return blobs, s
+        return Candidates(blobs, s, finder, Vs)
 
-    def _blobs(self, img: Image, s: int) -> tuple[list[Blob], float]:
-        finder = BlobFinder(self.min_area_px / (s * s), self.min_contrast)
-        return finder.find(coarse_v(img, s))
+    def _finder(self, img: Image, rgb: Image | None, s: int) -> tuple[BlobFinder, Image]:
+        """Build the blob finder for step ``s`` and the coarse V image it works on."""
+        coloured = None
+        if rgb is not None:
+            coloured = functools.partial(self._sphere_coloured, img, rgb is not img, s)
+        finder = BlobFinder(self.min_area_px / (s * s), self.min_contrast, coloured=coloured)
+        return finder, coarse_v(img, s)
+
+    def _sphere_coloured(self, img: Image, bgr: bool, s: int, ys: np.ndarray,
+                         xs: np.ndarray) -> np.ndarray:
+        """(N,) bool: the pixels (s·y, s·x) of ``img`` have the body's or a mark's colour."""
+        y = img[ys * s, xs * s].astype(np.float32) @ self._sphere_test[bgr]
+        y *= y
+        return ((y @ self._sphere_w) < 0.0).any(axis=1)
 
     def _no_blob(self, img: Image, rgb: Image | None, s: int) -> NotDetected:
         """Say why there is no candidate: the body fills the frame, a tiny blob, or none."""
@@ -407,4 +455,4 @@ class SilhouetteFinder:
         if ep is None:
             return NotDetected(Reason.NOT_ELLIPTICAL, 'the fitted conic')
         rms = math.sqrt(float(d @ d) / len(d))
-        return Silhouette(C, rms, len(d), ep, cut, thr, len(d) / N, med_contrast)
+        return Silhouette(C, rms, len(d), ep, cut, thr, len(d) / N, med_contrast, E, N)
