@@ -9,10 +9,10 @@ from plain geometry.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
 
-from independent_render import Ball, Camera, Cap, Checker, Disc, Flat, Light, NoiseTexture
+from independent_render import (Ball, Camera, Cap, Checker, Disc, Light, NoiseTexture,
+                                render)
 import numpy as np
 
 #: the three camera configurations of the accuracy tests
@@ -131,14 +131,6 @@ def random_light(rng: np.random.Generator) -> Light:
     return Light(direction=d / np.linalg.norm(d))
 
 
-@dataclass(frozen=True)
-class Truth:
-    """Ground truth of one frame: s_n,t = O/r and the target's rotation R (cRo)."""
-
-    s_nt: np.ndarray
-    R: np.ndarray
-
-
 def distractor(kind: str, cam: Camera, target, t: np.ndarray, rng: np.random.Generator):
     """
     Place a sphere or a flat disc beside the target, not overlapping its image.
@@ -179,6 +171,22 @@ def distractor(kind: str, cam: Camera, target, t: np.ndarray, rng: np.random.Gen
     return None
 
 
-__all__ = ['CAMERAS', 'CONTRASTS', 'Flat', 'Truth', 'distractor', 'in_view', 'incidence',
-           'random_light', 'random_poses', 'random_rotation', 'target_ball',
-           'textured_background']
+def scenes(cam: Camera, target, n: int, seed: int, *, distractor_kind: str | None = None,
+           cap_angle: float | None = None, background=None, max_incidence_deg: float = 70.0):
+    """
+    Yield ``n`` seeded frames ``(image, R, t, distractor)`` of the special sphere.
+
+    Poses of :func:`random_poses`, a textured background per frame (or ``background``), a
+    random light, sensor noise; a distractor of ``distractor_kind`` placed beside the target
+    (None when none fits), caps of ``cap_angle`` (default: the target's).
+    """
+    rng = np.random.default_rng(seed + 7919)
+    for R, t in random_poses(cam, target, n, seed, max_incidence_deg):
+        bg = textured_background(rng) if background is None else background
+        objects = [target_ball(target, R, t, cap_angle)]
+        extra = None
+        if distractor_kind is not None:
+            extra = distractor(distractor_kind, cam, target, t, rng)
+            if extra is not None:
+                objects.append(extra)
+        yield render(cam, objects, bg, random_light(rng), rng=rng), R, t, extra

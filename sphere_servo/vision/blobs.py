@@ -60,9 +60,9 @@ class Blob:
     grown: bool = False
 
     def centre(self, s: int) -> tuple[float, float]:
-        """Mean of its contour points, in full-resolution pixels (found at step ``s``)."""
-        m = self.contour.mean(axis=0)
-        return float(m[0]) * s, float(m[1]) * s
+        """Return the centre of its box, in full-resolution pixels (found at step ``s``)."""
+        x, y, w, h = cv2.boundingRect(self.contour)
+        return (x + 0.5 * (w - 1)) * s, (y + 0.5 * (h - 1)) * s
 
     @property
     def cut(self) -> bool:
@@ -119,12 +119,13 @@ def ellipticity(pts: np.ndarray, closed: bool = True) -> float:
         C = conic_from_rotated_rect(cx, cy, w, h, ang)
         A00, A01, A11 = float(C[0, 0]), float(C[0, 1]), float(C[1, 1])
         mean_axis = 0.5 * math.sqrt(w * h)
-    dx, dy = f[:, 0] - np.float32(cx), f[:, 1] - np.float32(cy)
-    q = np.sqrt(np.float32(A00) * dx * dx + np.float32(2 * A01) * dx * dy
-                + np.float32(A11) * dy * dy)
-    q -= 1.0
+    f -= np.array([cx, cy], np.float32)
+    q = f @ np.array([[A00, A01], [A01, A11]], np.float32)
+    q *= f
+    q2 = q[:, 0] + q[:, 1]                              # (p − c)ᵀ A (p − c)
     tol = max(1.0, ON_ELLIPSE * mean_axis) / mean_axis
-    return float(np.count_nonzero(np.abs(q) < tol)) / len(q)
+    on = (q2 > (1.0 - tol) ** 2) & (q2 < (1.0 + tol) ** 2)
+    return float(np.count_nonzero(on)) / len(q2)
 
 
 class BlobFinder:
@@ -202,8 +203,9 @@ class BlobFinder:
 
         A level set for the whole image (or for a merge) can cut into the sphere's shaded
         side. Around the blob, beyond a band of 0.3 of its radius (where the cut-off shaded
-        side lies), the background's bright end is the 90th percentile of V; the local
-        threshold is that plus ``min_contrast / 2``. The blob's component at that level is
+        side lies), the background's bright end is the 90th percentile of V (of the pixels
+        below the blob's level: others are other bright objects); the local threshold is
+        that plus ``min_contrast / 2``. The blob's component at that level is
         a candidate too, if it is still elliptical (not merged with the background): the
         grown blob, or None.
         """
@@ -218,6 +220,7 @@ class BlobFinder:
         cv2.drawContours(fill, [c], 0, 255, 2 * band + 1, offset=(-x0, -y0))
         crop = Vs[y0:y1, x0:x1]
         ring = crop[fill == 0]
+        ring = ring[ring <= thr]                # not other objects as bright as the blob
         if ring.size < 8:
             return None
         k = int(0.9 * (ring.size - 1))

@@ -34,14 +34,12 @@ from sphere_servo.core.conics import (conic_pixels_to_normalized, ellipse_params
                                       sampson_homogeneous)
 from sphere_servo.core.measurement import (MeasurementError, Observation, sphere_from_conic,
                                            SphereMeasurement)
-from sphere_servo.core.targets import mark_names, SPECIAL, Target
-from sphere_servo.vision.image import check_image, image_from_buffer
+from sphere_servo.core.targets import DEFAULT_COLORS, mark_names, SPECIAL, Target
+from sphere_servo.vision.image import check_image, image_from_buffer, to_chroma
 from sphere_servo.vision.marks import Mark, MarkFinder
 from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.scoring import FitBounds, foreign_arc, MarkGeometry
 from sphere_servo.vision.silhouette import Silhouette, SilhouetteFinder
-
-DEFAULT_COLORS = {'body': (235, 235, 225), 'P1': (220, 30, 30), 'P2': (30, 60, 220)}
 
 
 @dataclass
@@ -124,6 +122,27 @@ _STAGE = {Reason.NO_BLOB: 0, Reason.TOO_SMALL: 1, Reason.CUT_BY_BORDER: 2,
           Reason.NOT_A_SPHERE: 7, Reason.MARKS_INCONSISTENT: 8}
 
 
+def _check_distinct(colors: dict, body_tol: float, mark_tol: float) -> None:
+    """
+    Raise ``ValueError`` unless the body and every mark differ in chromaticity.
+
+    A mark within its tolerance of the body's colour (or of another mark's) could not be
+    told from it: the detector would look for it in vain, or find the wrong one.
+    """
+    chroma = {k: to_chroma(np.asarray(c, float)) for k, c in colors.items()}
+    names = [k for k in colors if k != 'body']
+    for i, a in enumerate(names):
+        d = float(np.linalg.norm(chroma[a] - chroma['body']))
+        if d < 1.5 * body_tol + mark_tol:
+            raise ValueError(f'mark {a} colour {colors[a]} is too close to the body '
+                             f'{colors["body"]} in chromaticity ({d:.3f})')
+        for b in names[i + 1:]:
+            d = float(np.linalg.norm(chroma[a] - chroma[b]))
+            if d < 2 * mark_tol:
+                raise ValueError(f'marks {a} and {b} have too close colours {colors[a]}, '
+                                 f'{colors[b]} ({d:.3f})')
+
+
 def _inside(sil: Silhouette, u: float, v: float) -> bool:
     """Tell whether the pixel (u, v) lies inside the silhouette ``sil``."""
     C = sil.conic_px
@@ -169,6 +188,7 @@ class Detector:
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
             raise ValueError("colors must contain 'body'")
+        _check_distinct(self.colors, body_chroma_tol, chroma_tol)
         self.silhouette = SilhouetteFinder(
             self.colors['body'], min_area_px=min_area_px, min_contrast=min_contrast,
             body_chroma_tol=body_chroma_tol, K=K, max_edge_points=max_edge_points,

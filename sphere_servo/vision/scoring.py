@@ -51,6 +51,7 @@ class FitBounds:
     sure_coverage: float = 0.8
     sure_rms_px: float = 0.25
     refit_quality: float = 0.03
+    unsure_max_quality: float = 0.05
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'FitBounds':
@@ -84,9 +85,16 @@ class FitBounds:
                                f'{sil.coverage:.0%} of it < {self.min_coverage:.0%}')
         if sil.rms_px > self.max_rms_px:
             return NotDetected(Reason.RESIDUAL, f'{sil.rms_px:.2f} px > {self.max_rms_px} px')
-        if sphere is not None and sphere.quality > self.max_quality:
-            return NotDetected(Reason.NOT_A_SPHERE,
-                               f'quality {sphere.quality:.3g} > {self.max_quality}')
+        if sphere is not None:
+            # a fit not sure in pixels (part of its edge missing or loose) must also be
+            # close to a sphere's image: the wrong intrinsics the loose bound allows for
+            # are then not forgiven
+            bound = self.max_quality if self.sure(sil) else \
+                min(self.max_quality, self.unsure_max_quality)
+            if sphere.quality > bound:
+                return NotDetected(Reason.NOT_A_SPHERE, f'quality {sphere.quality:.3g} > '
+                                   f'{bound}' + ('' if self.sure(sil) else
+                                                 f' (edge {sil.coverage:.0%} seen)'))
         return None
 
 

@@ -258,16 +258,27 @@ class SilhouetteFinder:
         Tell whether the body fills the frame.
 
         All four corners and the centre of the image are body-coloured and bright (a dim
-        grey background has the body's chromaticity too).
+        grey background has the body's chromaticity too); and, a grey wall being as
+        body-coloured as an off-white body, each is at least twice as close to the body's
+        chromaticity as to neutral grey, or — for a body too close to grey to tell —
+        their brightness varies as a shaded sphere's does (by 15 grey levels or more).
         """
         H, W = rgb.shape[:2]
         k = max(1, min(H, W) // 20)
         patches = [rgb[:k, :k], rgb[:k, -k:], rgb[-k:, :k], rgb[-k:, -k:],
                    rgb[H // 2 - k // 2:H // 2 + k // 2 + 1, W // 2 - k // 2:W // 2 + k // 2 + 1]]
         means = [p.reshape(-1, 3).mean(axis=0) for p in patches]
-        return all(m.max() >= FILLS_FRAME_MIN_V
-                   and np.linalg.norm(to_chroma(m) - self.body_chroma) < self.body_chroma_tol
-                   for m in means)
+        grey = np.full(3, 1.0 / 3.0)
+        tinted = np.linalg.norm(self.body_chroma - grey) >= 0.01
+        for m in means:
+            c = to_chroma(m)
+            d_body = np.linalg.norm(c - self.body_chroma)
+            if m.max() < FILLS_FRAME_MIN_V or d_body >= self.body_chroma_tol:
+                return False
+            if tinted and 2.0 * d_body > np.linalg.norm(c - grey):
+                return False
+        v = [float(m.max()) for m in means]
+        return tinted or max(v) - min(v) >= 15.0
 
     def _is_body(self, pix: np.ndarray, bgr: bool = False) -> np.ndarray:
         """(N,) bool: the (N, 3) rgb (bgr if ``bgr``) pixels have the body's chromaticity."""
