@@ -15,13 +15,17 @@ wrong, for the calibration-error experiment — the detector just uses them):
    their centres; they must lie on it and fit the target's geometry
    (:class:`~sphere_servo.vision.scoring.MarkGeometry`).
 
-The first candidate whose marks are all found and consistent is the target (a distractor —
-another sphere, a disc, a bright patch of background — has no such marks). Otherwise the
-candidate with the most marks is; one with no mark only when it is the only sphere-like
-blob in view (several: ambiguous, not detected). A fit outside the bounds is never
-published. When nothing is chosen, ``found`` is False and ``not_detected`` says why (a
+The first *sure* candidate (its edge contrasted around most of it, tightly fitted) whose
+marks are all found and consistent is the target: a distractor — another sphere, a disc, a
+bright patch of background — has no such marks. A blob whose fit is not sure is tried
+again grown down to the level of the background around it (a higher level may have cut
+into the sphere's shaded side). Otherwise the candidate with the most marks is the target,
+then the one with the best edge coverage and residual (pixel figures: the choice does not
+depend on the intrinsics); one with no mark only when it is the only sphere-like object in
+view (several: ambiguous, not detected). A fit outside the bounds is never published. When
+nothing is chosen, ``found`` is False and ``not_detected`` says why (a
 :class:`~sphere_servo.vision.reasons.Reason` and a detail) for the candidate that came
-closest.
+furthest.
 """
 from __future__ import annotations
 
@@ -59,6 +63,7 @@ class Detection:
     marks          name → :class:`~sphere_servo.vision.marks.Mark`.
     cut_by_border  the silhouette touches the image border (fit on the free contour only).
     n_edge_points  edge points used by the final fit.
+    coverage       fraction of the edge profiles (on the image) that gave a kept edge point.
     not_detected   why not found (:class:`~sphere_servo.vision.reasons.NotDetected`),
                    None when found.
     """
@@ -74,6 +79,7 @@ class Detection:
     cut_by_border: bool = False
     n_edge_points: int = 0
     not_detected: NotDetected | None = None
+    coverage: float = float('nan')
 
     @classmethod
     def missed(cls, why: NotDetected, marks: dict) -> 'Detection':
@@ -351,7 +357,7 @@ class Detector:
         c, ax, ang = sil.ellipse
         return Detection(True, '', cand.C_n, sphere, sphere.quality, sil.rms_px,
                          (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), cand.marks,
-                         sil.cut_by_border, sil.n_points)
+                         sil.cut_by_border, sil.n_points, coverage=sil.coverage)
 
 
 def detect(image: np.ndarray, encoding: str, camera, target: Target | None = None,

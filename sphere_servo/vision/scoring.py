@@ -176,8 +176,12 @@ class MarkGeometry:
     names         the two marks (P1, P2) or (P1, P3).
     cos_angle     cosine of the angle between the surface normals at P1 and P2 (special).
     stick_r       ``‖P3 − P1‖ / r`` (cc).
-    angle_tol     largest error of that angle (rad).
-    stick_tol     largest relative error of that length.
+    angle_tol     largest error of that angle (rad). Measured on 150 seeded frames (the
+                  project's renderer, σ = 2 noise, marks within 70° of the line of sight):
+                  at most 0.42° with the right intrinsics, 3.7° (4.4° over 200 poses) with
+                  the paper's calibration error; 8° is about twice that.
+    stick_tol     largest relative error of that length: at most 6 % with the right
+                  intrinsics, 14 % with the calibration error (same frames, CC target).
     off_sphere    how far (rad) outside the silhouette cone a surface mark's centre may be
                   measured (noise at the limb).
     """
