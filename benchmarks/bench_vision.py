@@ -1,9 +1,11 @@
 """
-Vision benchmark: detector and renderer speed at 640×480 (prints; never asserted by tests).
+Vision benchmark: detector and renderer speed (prints; never asserted by tests).
 
 - detector median ms/frame on ray-cast frames of the special sphere at 0.25–1.0 m, beside a
-  bare ``cvtColor + threshold(Otsu) + findContours + fitEllipse`` on the same frames
-  (target: ratio ≤ 3, median < 3 ms);
+  bare ``cvtColor + threshold(Otsu) + findContours + fitEllipse`` on the same frames, at
+  640×480 (f = 600 px; target: ratio ≤ 3, median < 3 ms) and 1280×720 (f = 900 px), and
+  at 640×480 on a two-level checkerboard (40/70) with a white distractor sphere (the
+  candidate search's hard case);
 - renderer frames/s for a target filling a quarter of the image (target ≥ 150).
 
 ``python -m benchmarks.bench_vision [--quick]`` prints a table.
@@ -19,20 +21,25 @@ import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import cc_target, special_sphere
+from sphere_servo.vision.backgrounds import Distractor
 from sphere_servo.vision.detector import Detector
 from sphere_servo.vision.poses import random_poses
 from sphere_servo.vision.renderer import Renderer
 
 
-def _frames(n: int, seed: int = 0):
+HD = CameraIntrinsics(px=900.0, py=900.0, u0=640.0, v0=360.0, width=1280, height=720)
+
+
+def _frames(n: int, seed: int = 0, cam: CameraIntrinsics | None = None, **kw):
     """
     Render frames of the special sphere at the detector tests' random poses.
 
-    0.25–1.0 m, the sphere fully in view, any orientation.
+    0.25–1.0 m, the sphere fully in view, any orientation; ``kw``: the renderer's
+    (background, distractors).
     """
-    cam = CameraIntrinsics()
+    cam = cam or CameraIntrinsics()
     target = special_sphere()
-    ren = Renderer(cam, target)
+    ren = Renderer(cam, target, **kw)
     poses = random_poses(target, cam, n, seed, max_incidence=None)
     return cam, target, [ren.render(M) for M in poses]
 
@@ -48,14 +55,18 @@ def baseline_ellipse(img: np.ndarray):
     return cv2.fitEllipse(c) if len(c) >= 5 else None
 
 
-def _median_ms(fn, frames, repeat: int) -> float:
-    times = []
+def _median_ms_pair(fa, fb, frames, repeat: int) -> tuple[float, float]:
+    """Median ms of ``fa`` and of ``fb`` per frame, called alternately on each frame."""
+    ta, tb = [], []
     for _ in range(repeat):
         for f in frames:
             t0 = time.perf_counter()
-            fn(f)
-            times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+            fa(f)
+            t1 = time.perf_counter()
+            fb(f)
+            tb.append(time.perf_counter() - t1)
+            ta.append(t1 - t0)
+    return 1e3 * float(np.median(ta)), 1e3 * float(np.median(tb))
 
 
 def _row(name, value, unit, target, baseline=None, baseline_name=None):
@@ -68,16 +79,23 @@ def _row(name, value, unit, target, baseline=None, baseline_name=None):
 def run(quick: bool = False) -> list[dict]:
     """Measure; returns rows ``{name, value, unit, baseline, baseline_name, ratio, target}``."""
     n, repeat = (15, 2) if quick else (60, 3)
-    cam, target, frames = _frames(n)
-    det = Detector.for_target(target)
-    for f in frames[:3]:                      # warm-up
-        det.detect(f, 'rgb8', cam)
-        baseline_ellipse(f)
-    base = _median_ms(baseline_ellipse, frames, repeat)
-    mine = _median_ms(lambda f: det.detect(f, 'rgb8', cam), frames, repeat)
-    rows = [_row('detector median per 640x480 frame', mine, 'ms',
-                 'median < 3 ms and ratio <= 3', base,
-                 'cv2 threshold+findContours+fitEllipse')]
+    rows = []
+    hard = {'background': 'checker', 'levels': (40, 70), 'seed': 1,
+            'distractors': [Distractor('sphere', (-0.1, 0.07, 0.6), 0.05, (250, 250, 250))]}
+    for name, cam, kw, target in (
+            ('detector median per 640x480 frame', None, {}, 'median < 3 ms and ratio <= 3'),
+            ('detector median per 1280x720 frame', HD, {}, 'reported (ratio <= 3)'),
+            ('detector 640x480, checker 40/70 + distractor', None, hard, 'reported')):
+        cam, tgt, frames = _frames(n, cam=cam, **kw)
+        det = Detector.for_target(tgt)
+        for f in frames[:3]:                  # warm-up
+            det.detect(f, 'rgb8', cam)
+            baseline_ellipse(f)
+        # interleaved, frame by frame, so that the load of the machine hits both alike
+        base, mine = _median_ms_pair(baseline_ellipse, lambda f: det.detect(f, 'rgb8', cam),
+                                     frames, repeat)
+        rows.append(_row(name, mine, 'ms', target, base,
+                         'cv2 threshold+findContours+fitEllipse'))
     # a target filling a quarter of the image: disc area W·H/4
     R_px = np.sqrt(cam.width * cam.height / (4 * np.pi))
     for name, tgt in (('special', special_sphere()), ('cc', cc_target())):

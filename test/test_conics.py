@@ -15,7 +15,8 @@ from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.conics import (conic_bbox, conic_from_moments, conic_from_rotated_rect,
                                       conic_normalized_to_pixels, conic_pixels_to_normalized,
                                       ConicError, ellipse_params, ellipsoid_silhouette,
-                                      fit_conic, sampson_distance, sphere_silhouette)
+                                      fit_circular_cone, fit_conic, sampson_distance,
+                                      sphere_silhouette)
 
 CAM = CameraIntrinsics(px=610.0, py=590.0, u0=331.0, v0=236.0)
 
@@ -193,3 +194,26 @@ def test_silhouettes_refuse_a_camera_inside_the_body():
     with pytest.raises(ConicError, match='inside'):
         ellipsoid_silhouette(pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.05])),
                              np.array([0.02, 0.02, 0.06]))
+
+
+def test_circular_cone_fits_the_rays_of_a_ball_silhouette():
+    """Rays to the occluding circle of a ball (plain geometry) give b and cos θ back."""
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        cO = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(0.3, 1.0)])
+        r = 0.05
+        d = np.linalg.norm(cO)
+        n = cO / d
+        e1 = np.cross(n, [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        a = rng.uniform(0, 2 * np.pi, 60)
+        P = cO * (1 - (r / d) ** 2) + r * np.sqrt(1 - (r / d) ** 2) * (
+            np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+        q = (P / np.linalg.norm(P, axis=1, keepdims=True)).T
+        b, c = fit_circular_cone(q)
+        np.testing.assert_allclose(b, n, atol=1e-9)
+        assert c == pytest.approx(np.sqrt(1 - (r / d) ** 2), abs=1e-12)
+        b2, c2 = fit_circular_cone(-q[:, ::-1] * -1)             # order does not matter
+        np.testing.assert_allclose(b2, n, atol=1e-9)
+        assert c2 >= 0

@@ -138,6 +138,23 @@ def test_watchdog_on_the_wall_clock():
     assert c.on_tick(10.6) is None
 
 
+def test_lockstep_watchdog_reports_but_sends_no_twist():
+    """
+    A lockstep arm steps once per twist: the watchdog's twists would add periods.
+
+    So with ``lockstep`` the watchdog still reports waiting and stale (the states are the
+    same), but its commands carry no twist to send; the answers to images still do.
+    """
+    for lockstep in (False, True):
+        c = core(timeout=0.3, lockstep=lockstep)
+        waiting = core(desired=False, lockstep=lockstep).on_tick(0.0)
+        assert waiting.state is ServoState.WAITING and waiting.send_twist is not lockstep
+        assert answer(c, 1 * MS, wall=10.0).send_twist
+        stale = c.on_tick(10.31)
+        assert stale.state is ServoState.STALE and stale.send_twist is not lockstep
+        assert answer(c, 2 * MS, wall=10.4).send_twist
+
+
 def test_published_values_in_order():
     c = core(desired=False, start_enabled=False)
     assert c.on_tick(0.0).values() == {'reason': 'no features yet', 'converged': 'False',

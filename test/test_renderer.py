@@ -8,6 +8,7 @@ import pytest
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.measurement import mark_visible
 from sphere_servo.core.targets import balloon, cc_target, special_sphere
+from sphere_servo.vision.backgrounds import Distractor
 from sphere_servo.vision.renderer import Renderer
 
 CAM = CameraIntrinsics()
@@ -157,3 +158,78 @@ def test_balloon_silhouette_is_wider_along_its_long_axis():
     h = np.count_nonzero(mask.any(axis=1))
     # semi-axes 0.08 and 0.04 at 0.5 m, px = 600: ≈ 192 and 96 px
     assert abs(w - 2 * 600 * 0.08 / 0.5) < 6 and abs(h - 2 * 600 * 0.04 / 0.5) < 6
+
+
+@pytest.mark.parametrize('kind', ['checker', 'noise'])
+def test_two_level_textures_have_their_levels_and_soft_edges(kind):
+    """max(R, G, B) of a two-level texture is lo or hi, box-filtered at the edges."""
+    target = special_sphere()
+    behind = pin.SE3(np.eye(3), np.array([0.0, 0.0, -1.0]))
+    img = Renderer(CAM, target, background=kind, levels=(40, 70), texture_px=20,
+                   seed=3).render(behind)
+    V = img.max(axis=2).astype(int)
+    lo, hi = np.abs(V - 40) <= 1, np.abs(V - 70) <= 1
+    assert lo.mean() > 0.3 and hi.mean() > 0.3, (lo.mean(), hi.mean())
+    mixed = (V > 42) & (V < 68)
+    assert 0.005 < mixed.mean() < 0.2, mixed.mean()             # anti-aliased edges
+    other = Renderer(CAM, target, background=kind, levels=(40, 70), texture_px=20,
+                     seed=4).render(behind)
+    assert np.mean(other != img) > 0.1                           # the seed moves it
+    with pytest.raises(ValueError, match='levels'):
+        Renderer(CAM, target, background=kind, levels=(40, 300))
+
+
+def test_distractors_are_drawn_where_they_project_and_behind_the_target():
+    target = special_sphere()
+    ball = Distractor('sphere', (-0.1, 0.05, 0.6), 0.04, (250, 250, 250))
+    disc = Distractor('disc', (0.12, -0.08, 0.7), 0.05, (200, 250, 200))
+    # the target in front of part of the ball
+    cMo = pin.SE3(np.eye(3), np.array([-0.03, 0.05, 0.45]))
+    ren = Renderer(CAM, target, background='flat', distractors=[ball, disc])
+    img = ren.render(cMo).astype(int)
+    empty = Renderer(CAM, target, background='flat', distractors=[ball, disc]).render(
+        pin.SE3(np.eye(3), np.array([0.0, 0.0, -1.0]))).astype(int)
+    ball_mask = analytic_disc(pin.SE3(np.eye(3), np.asarray(ball.centre)), special_sphere(0.04))
+    seen = empty.max(axis=2) > BG + 30
+    inter = np.count_nonzero(seen & ball_mask)
+    # the disc is a little larger than the ball of its radius: compare the ball only
+    near_ball = np.zeros_like(seen)
+    near_ball[:, :320] = True
+    iou = inter / np.count_nonzero((seen & near_ball) | ball_mask)
+    assert iou > 0.98, iou
+    # the flat disc has its colour inside, no shading
+    (u, v), = CAM.project(np.asarray(disc.centre)[None])
+    np.testing.assert_array_equal(empty[int(v), int(u)], (200, 250, 200))
+    # the target covers the ball where they overlap (the ball is drawn behind it): there
+    # the image is the target's alone, away from its anti-aliased rim
+    alone = Renderer(CAM, target, background='flat').render(cMo).astype(int)
+    body = analytic_disc(cMo, target)
+    inner = body & np.roll(body, 2, 0) & np.roll(body, -2, 0) & np.roll(body, 2, 1) \
+        & np.roll(body, -2, 1)
+    overlap = inner & ball_mask
+    assert np.count_nonzero(overlap) > 200
+    np.testing.assert_array_equal(img[overlap], alone[overlap])
+    assert np.any(img[ball_mask & ~body] != alone[ball_mask & ~body])
+    with pytest.raises(ValueError, match='in front'):
+        Distractor('sphere', (0.0, 0.0, 0.01), 0.05)
+    with pytest.raises(ValueError, match='kind'):
+        Distractor('cube', (0.0, 0.0, 1.0), 0.05)
+
+
+@pytest.mark.parametrize('deg', [5.0, 9.0, 15.0])
+def test_cap_radius_comes_from_the_target(deg):
+    """A cap facing the camera images as a disc of radius ≈ f r sin ρ / (d − r cos ρ)."""
+    target = special_sphere(mark_radius_deg=deg)
+    n1 = target.oP1 / np.linalg.norm(target.oP1)
+    R = pin.Quaternion.FromTwoVectors(n1, np.array([0, 0, -1.0])).matrix()
+    d = 0.4
+    img = Renderer(CAM, target, background='flat').render(pin.SE3(R, np.array([0, 0, d])))
+    # coverage of each pixel near the cap: pixel = a·mark + b·body (least squares), a/(a+b)
+    rho, r = np.radians(deg), target.radius
+    R_px = CAM.px * r * np.sin(rho) / (d - r * np.cos(rho))
+    v, u = np.mgrid[0:CAM.height, 0:CAM.width]
+    near = np.hypot(u - CAM.u0, v - CAM.v0) < R_px + 4
+    M = np.column_stack([target.colors['P1'], target.colors['body']]).astype(float)
+    ab = np.linalg.lstsq(M, img[near].astype(float).T, rcond=None)[0]
+    area = np.clip(ab[0] / (ab[0] + ab[1]), 0, 1).sum()
+    assert abs(area / (np.pi * R_px ** 2) - 1) < 0.05, (area, np.pi * R_px ** 2)

@@ -34,6 +34,7 @@ from sphere_servo.pipeline.config import ConfigError, Scenario, scenario
 from sphere_servo.ros.params import StopFlag
 
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
+RECORDER_IDLE_TIMEOUT = 8.0  # wall s the end of a run waits for the late messages to come
 
 
 class ExitCode(IntEnum):
@@ -141,6 +142,12 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
             signal.signal(sig, handler)
         if sup is not None:
             sup.stop = lambda: False  # the last messages still come in
+            if record and not interrupted:  # the servo first (its last word: a zero twist),
+                #                              then the messages still on their way
+                launcher.stop_one('servo')
+                left = sup.wait_recorder(RECORDER_IDLE_TIMEOUT, lambda: True, '/recorder/idle')
+                if left is not None:
+                    log(f'warning: stopping the recorder while messages still come: {left}')
             sup.spin(0.2)
             sup.close()
         codes = launcher.stop()

@@ -148,6 +148,11 @@ class Launcher:
         """Names of nodes that have exited."""
         return [n for n, c in self.children.items() if c.popen.poll() is not None]
 
+    def stop_one(self, name: str, timeout: float = 10.0) -> int | None:
+        """Stop ``name`` (SIGINT, then SIGKILL) if it was started; return its exit code."""
+        child = self.children.get(name)
+        return None if child is None else interrupt(child.popen, timeout)
+
     def stop(self, timeout: float = 10.0) -> dict[str, int]:
         """Stop every node (servo first), SIGINT then SIGKILL; return the exit codes."""
         order = [n for n in STOP_ORDER if n in self.children] + \

@@ -231,18 +231,22 @@ class Supervisor:
             self._clients[service] = self.node.create_client(srv, service)
         return self._clients[service]
 
-    def wait_recorder(self, timeout: float, alive) -> str | None:
+    def wait_recorder(self, timeout: float, alive, service: str = '/recorder/ready',
+                      ) -> str | None:
         """
         Wait until the recorder records every topic it was asked for (its ``~/ready``).
 
         Returns ``None`` when it does, else what it still waits for after ``timeout`` s.
         Under load, the recorder discovers a node's topics up to seconds after the node
         started: a run that began meanwhile would miss its first messages in the bag.
+        ``service='/recorder/idle'`` waits instead until nothing new has reached the
+        recorder for a while: under load Fast DDS delivers small topics seconds late, and a
+        recorder interrupted before they came would cut them from the bag.
         """
         end = time.monotonic() + timeout
         while True:
             try:
-                res = self.call('/recorder/ready', max(0.5, end - time.monotonic()))
+                res = self.call(service, max(0.5, end - time.monotonic()))
             except LaunchError as exc:
                 return str(exc)
             if res.success:

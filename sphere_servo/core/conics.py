@@ -14,7 +14,8 @@ conic maps between them as ``C_n = Kᵀ C_px K``.
   (``cv2.fitEllipse``'s result), :func:`conic_bbox`;
 - :func:`conic_pixels_to_normalized`, :func:`conic_normalized_to_pixels`;
 - silhouettes seen from the camera centre: :func:`sphere_silhouette` (``b bᵀ − cos²θ I``)
-  and :func:`ellipsoid_silhouette` (the dual quadric projected).
+  and :func:`ellipsoid_silhouette` (the dual quadric projected); :func:`fit_circular_cone`
+  (the sphere's cone of rays, fitted to unit rays).
 
 Several functions take homogeneous rows ``P`` (3, N) = ``(x, y, 1)`` instead of (N, 2)
 points and return plain floats: the detector calls them in its inner loop.
@@ -243,6 +244,26 @@ def conic_normalized_to_pixels(C: Conic, px: float, py: float, u0: float,
     gx, gy = d - a * x0 - b * y0, e - b * x0 - c * y0
     return _unit(a / (px * px), b / (px * py), gx / px, c / (py * py), gy / py,
                  f - x0 * (d + gx) - y0 * (e + gy))
+
+
+# --- cones of rays ----------------------------------------------------------------------
+def fit_circular_cone(q: np.ndarray) -> tuple[np.ndarray, float]:
+    """
+    Fit the right circular cone ``b·q = c`` (``|b| = 1``) to unit rays ``q`` (3, N), N ≥ 3.
+
+    A sphere's occluding contour is seen along such a cone (``b`` its centre's direction,
+    ``c = cos θ``, DESIGN.md §2), whatever the camera that maps pixels to rays: the rays'
+    ends lie on the plane ``b·x = c``, fitted by least squares (b: the eigenvector of the
+    smallest eigenvalue of their scatter, c = b·mean). Returns ``(b, c)`` with ``c ≥ 0``.
+    """
+    qm = q.mean(axis=1)
+    D = q - qm[:, None]
+    _, V = np.linalg.eigh(D @ D.T)
+    b = V[:, 0]
+    c = float(b @ qm)
+    if c < 0:
+        b, c = -b, -c
+    return b, c
 
 
 # --- silhouettes ----------------------------------------------------------------------

@@ -2,9 +2,12 @@
 Gallery: ray-cast frames with the detection drawn on top, as PNGs.
 
 ``python -m sphere_servo.experiments.gallery [--out DIR]`` (``make gallery``) writes special, CC,
-balloon, border-cut, noisy and cluttered frames to ``docs/gallery/`` by default. Drawn on
-each (:func:`~sphere_servo.vision.draw.draw_detection`): the fitted ellipse (green), each
-detected mark centre (cyan cross), the true mark positions (white circles) and a status line.
+balloon, border-cut, noisy and cluttered frames, a far sphere on a two-level checkerboard
+(40/70 on max(R, G, B): levels on both sides of a global threshold) and the target among
+white distractor spheres and a disc on a noise texture, to ``docs/gallery/`` by default.
+Drawn on each (:func:`~sphere_servo.vision.draw.draw_detection`): the fitted ellipse
+(green), each detected mark centre (cyan cross), the true mark positions (white circles)
+and a status line.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import balloon, cc_target, special_sphere
+from sphere_servo.vision.backgrounds import Distractor
 from sphere_servo.vision.detector import Detector
 from sphere_servo.vision.draw import draw_detection
 from sphere_servo.vision.renderer import Renderer
@@ -47,6 +51,15 @@ def scenes():
          pin.SE3(R, np.array([-0.05, -0.03, 0.7]))),
         ('clutter_dim', special_sphere(), {'background': 'clutter', 'gain': 0.7},
          pin.SE3(R, np.array([0.03, 0.04, 0.45]))),
+        ('textured', special_sphere(), {'background': 'checker', 'levels': (40, 70),
+                                        'texture_px': 22, 'noise_sigma': 2.0},
+         pin.SE3(R, np.array([0.12, -0.05, 0.95]))),
+        ('distractors', special_sphere(),
+         {'background': 'noise', 'levels': (30, 80), 'texture_px': 30, 'noise_sigma': 2.0,
+          'distractors': [Distractor('sphere', (-0.1, 0.04, 0.55), 0.05, (250, 250, 250)),
+                          Distractor('sphere', (0.12, 0.1, 0.5), 0.07),
+                          Distractor('disc', (-0.02, -0.12, 0.6), 0.05, (250, 250, 250))]},
+         pin.SE3(R, np.array([0.06, -0.01, 0.7]))),
     ]
 
 

@@ -202,6 +202,9 @@ class ServoParams(NodeParams):
                                  bounds=(0.0, 60.0), **FIXED)
     start_enabled: bool = param(True, 'servo at once; false: send zero twists until '
                                 '~/enable', **FIXED)
+    lockstep: bool = param(False, 'the arm is a lockstep simulator (each twist steps it, '
+                           'and it does not move between twists): the watchdog reports '
+                           'waiting/stale but sends no twist, which would step it', **FIXED)
 
     def validate(self) -> None:
         """Check that the adaptive gain decreases (λ₀ > λ∞), when it is used."""

@@ -98,6 +98,7 @@ class ServoCommand:
     gain: float | None = None
     saturated: bool | None = None
     changed: bool = False
+    send_twist: bool = True  # False: a state only (the lockstep watchdog)
     desired_stamp_ns: int | None = None
 
     def values(self, image_age_ns: int | None = None) -> dict[str, str]:
@@ -216,13 +217,23 @@ class ServoCore:
                              saturated=out.saturated)
 
     def on_tick(self, wall_now: float) -> ServoCommand | None:
-        """Return the watchdog's zero twist when waiting or stale, else None."""
+        """
+        Return the watchdog's zero twist when waiting or stale, else None.
+
+        With ``lockstep`` the command carries the state only: a twist would step the
+        simulator (an extra period under a zero twist, so a run would depend on how long
+        the machine's load delays the features), and a lockstep arm does not move between
+        twists anyway.
+        """
         if self.last_rx is None:
-            return self._command(ServoState.WAITING, Level.OK, reason='no features yet')
-        if wall_now - self.last_rx > self.timeout:
-            return self._stop(ServoState.STALE,
-                              f'no usable features for more than {self.timeout} s')
-        return None
+            cmd = self._command(ServoState.WAITING, Level.OK, reason='no features yet')
+        elif wall_now - self.last_rx > self.timeout:
+            cmd = self._stop(ServoState.STALE,
+                             f'no usable features for more than {self.timeout} s')
+        else:
+            return None
+        cmd.send_twist = not self.params.lockstep
+        return cmd
 
     def _stop(self, state: ServoState, reason: str, stamp_ns: int | None = None,
               fault: str = '') -> ServoCommand:

@@ -134,7 +134,8 @@ class ServoNode(Node):
         if cmd.fault:
             self.get_logger().error(f'no valid twist: {cmd.fault}', throttle_duration_sec=2.0)
         hdr = header if header is not None else self._unstamped()
-        self.pub_twist.publish(TwistStamped(header=hdr, twist=twist_from_array(cmd.twist)))
+        if cmd.send_twist:
+            self.pub_twist.publish(TwistStamped(header=hdr, twist=twist_from_array(cmd.twist)))
         age_ns = None
         if header is not None:
             age_ns = self.get_clock().now().nanoseconds - cmd.stamp_ns

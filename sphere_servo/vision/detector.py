@@ -1,37 +1,49 @@
 """
-Detector (no ROS): image → the sphere's conic + the marks' image points. DESIGN.md §2.
+Detector (no ROS): image → the target's conic + the marks' image points. DESIGN.md §2.
 
 For one ``rgb8`` / ``bgr8`` / ``mono8`` image and the intrinsics it is *given* (possibly
 wrong, for the calibration-error experiment — the detector just uses them):
 
 1. :mod:`~sphere_servo.vision.image` checks the image;
-2. :mod:`~sphere_servo.vision.silhouette` finds the sphere's blob and fits the conic of its
-   sub-pixel edge, in pixels;
-3. the conic in *normalized* coordinates gives the sphere
-   (:func:`~sphere_servo.core.measurement.sphere_from_conic`);
-4. :mod:`~sphere_servo.vision.marks` finds the marks by colour and measures their centres
-   on that sphere.
+2. :mod:`~sphere_servo.vision.silhouette` yields candidate blobs (global and local
+   thresholds, :mod:`~sphere_servo.vision.blobs`) with the sub-pixel conic of each, in
+   pixels, the most sphere-like first;
+3. a candidate within the calibrated :class:`~sphere_servo.vision.scoring.FitBounds`
+   (residual, edge coverage, departure from a sphere's image) gives the sphere, from its
+   conic in *normalized* coordinates (:func:`~sphere_servo.core.measurement.sphere_from_conic`);
+4. :mod:`~sphere_servo.vision.marks` finds the marks by colour on that sphere and measures
+   their centres; they must lie on it and fit the target's geometry
+   (:class:`~sphere_servo.vision.scoring.MarkGeometry`).
 
-:class:`Detector` holds the configuration (the target's colours) and returns a
-:class:`Detection`; when there is no usable target, ``found`` is False and
-``not_detected`` says why (a :class:`~sphere_servo.vision.silhouette.Reason` and a detail).
+The first *sure* candidate (its edge contrasted around most of it, tightly fitted) whose
+marks are all found and consistent is the target: a distractor — another sphere, a disc, a
+bright patch of background — has no such marks. A blob whose fit is not sure is tried
+again grown down to the level of the background around it (a higher level may have cut
+into the sphere's shaded side). Otherwise the candidate with the most marks is the target,
+then the one with the best edge coverage and residual (pixel figures: the choice does not
+depend on the intrinsics); one with no mark only when it is the only sphere-like object in
+view (several: ambiguous, not detected). A fit outside the bounds is never published. When
+nothing is chosen, ``found`` is False and ``not_detected`` says why (a
+:class:`~sphere_servo.vision.reasons.Reason` and a detail) for the candidate that came
+furthest.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
 
-from sphere_servo.core.conics import conic_pixels_to_normalized
+from sphere_servo.core.conics import (conic_pixels_to_normalized, ellipse_params, fit_conic,
+                                      sampson_homogeneous)
 from sphere_servo.core.measurement import (MeasurementError, Observation, sphere_from_conic,
                                            SphereMeasurement)
-from sphere_servo.core.targets import mark_names, SPECIAL, Target
-from sphere_servo.vision.image import check_image, image_from_buffer
+from sphere_servo.core.targets import DEFAULT_COLORS, mark_names, SPECIAL, Target
+from sphere_servo.vision.image import check_image, image_from_buffer, to_chroma
 from sphere_servo.vision.marks import Mark, MarkFinder
-from sphere_servo.vision.silhouette import NotDetected, Reason, Silhouette, SilhouetteFinder
-
-DEFAULT_COLORS = {'body': (235, 235, 225), 'P1': (220, 30, 30), 'P2': (30, 60, 220)}
+from sphere_servo.vision.reasons import NotDetected, Reason
+from sphere_servo.vision.scoring import FitBounds, foreign_arc, MarkGeometry
+from sphere_servo.vision.silhouette import Silhouette, SilhouetteFinder
 
 
 @dataclass
@@ -44,13 +56,15 @@ class Detection:
     conic          3×3 conic of the sphere's image in NORMALIZED image coordinates
                    (``x̄ᵀ C x̄ = 0``, unit Frobenius norm), or None.
     sphere         :class:`SphereMeasurement` from the conic (b, r_δ, quality), or None.
-    quality        eigenvalue spread of the conic (0 for a perfect sphere image).
+    quality        eigenvalue spread of the conic (0 for a perfect sphere image); a published
+                   fit is within the detector's calibrated bounds.
     residual_px    RMS distance (px) of the kept edge points to the fitted ellipse.
     ellipse_px     ``((u_c, v_c), (full_axis_1, full_axis_2), angle_deg)`` for cv2.ellipse.
     marks          name → :class:`~sphere_servo.vision.marks.Mark`.
     cut_by_border  the silhouette touches the image border (fit on the free contour only).
     n_edge_points  edge points used by the final fit.
-    not_detected   why not found (:class:`~sphere_servo.vision.silhouette.NotDetected`),
+    coverage       fraction of the edge profiles (on the image) that gave a kept edge point.
+    not_detected   why not found (:class:`~sphere_servo.vision.reasons.NotDetected`),
                    None when found.
     """
 
@@ -65,6 +79,7 @@ class Detection:
     cut_by_border: bool = False
     n_edge_points: int = 0
     not_detected: NotDetected | None = None
+    coverage: float = float('nan')
 
     @classmethod
     def missed(cls, why: NotDetected, marks: dict) -> 'Detection':
@@ -84,9 +99,9 @@ class Detection:
         q = {}
         for name in names:
             m = self.marks.get(name)
-            if m is None or not m.visible:
+            if m is None:
                 raise MeasurementError(f'mark {name} is not visible')
-            q[name] = m.q
+            q[name] = m.q                  # raises why it is not visible
         return Observation(self.sphere, q, kind)
 
 
@@ -106,13 +121,64 @@ def camera_intrinsics(camera) -> tuple[float, float, float, float]:
     return tuple(vals)
 
 
+# the stages a candidate goes through; a miss further on says more about the image
+_STAGE = {Reason.NO_BLOB: 0, Reason.TOO_SMALL: 1, Reason.CUT_BY_BORDER: 2,
+          Reason.NOT_BODY_COLOURED: 3, Reason.NOT_ELLIPTICAL: 4, Reason.LOW_CONTRAST: 5,
+          Reason.FEW_EDGE_POINTS: 5, Reason.EDGE_COVERAGE: 6, Reason.RESIDUAL: 6,
+          Reason.NOT_A_SPHERE: 7, Reason.MARKS_INCONSISTENT: 8}
+
+
+def _check_distinct(colors: dict, body_tol: float, mark_tol: float) -> None:
+    """
+    Raise ``ValueError`` unless the body and every mark differ in chromaticity.
+
+    A mark within its tolerance of the body's colour (or of another mark's) could not be
+    told from it: the detector would look for it in vain, or find the wrong one.
+    """
+    chroma = {k: to_chroma(np.asarray(c, float)) for k, c in colors.items()}
+    names = [k for k in colors if k != 'body']
+    for i, a in enumerate(names):
+        d = float(np.linalg.norm(chroma[a] - chroma['body']))
+        if d < 1.5 * body_tol + mark_tol:
+            raise ValueError(f'mark {a} colour {colors[a]} is too close to the body '
+                             f'{colors["body"]} in chromaticity ({d:.3f})')
+        for b in names[i + 1:]:
+            d = float(np.linalg.norm(chroma[a] - chroma[b]))
+            if d < 2 * mark_tol:
+                raise ValueError(f'marks {a} and {b} have too close colours {colors[a]}, '
+                                 f'{colors[b]} ({d:.3f})')
+
+
+def _inside(sil: Silhouette, u: float, v: float) -> bool:
+    """Tell whether the pixel (u, v) lies inside the silhouette ``sil``."""
+    C = sil.conic_px
+    p, c = np.array([u, v, 1.0]), np.array([*sil.ellipse.centre, 1.0])
+    return float(p @ C @ p) * float(c @ C @ c) > 0
+
+
+@dataclass
+class _Candidate:
+    """A candidate that passed the bounds: its silhouette, conic, sphere and marks."""
+
+    sil: Silhouette
+    C_n: np.ndarray
+    sphere: SphereMeasurement
+    marks: dict
+    n_marks: int
+    sure: bool = False
+
+
 class Detector:
     """
-    Sphere + marks detector, configured by the colours of the body and the marks.
+    Sphere + marks detector, configured by the target's description.
 
     colors          {'body': rgb, 'P1': rgb, 'P2' or 'P3': rgb} (rgb8 triplets).
     surface_marks   names of marks painted on the surface (centre by back-projection on the
                     sphere); the others (the CC tip 'P3') use the image of their centre.
+    geometry        the marks' :class:`~sphere_servo.vision.scoring.MarkGeometry` (None: the
+                    marks are not checked against each other).
+    bounds          the :class:`~sphere_servo.vision.scoring.FitBounds` of a published fit.
+    max_fits        largest number of sphere-like objects fitted in one image.
     min_area_px, min_contrast, body_chroma_tol, K, max_edge_points, coarse_step
                     the silhouette's (:class:`~sphere_servo.vision.silhouette.SilhouetteFinder`).
     chroma_tol, min_mark_px, mark_radius
@@ -120,62 +186,178 @@ class Detector:
     """
 
     def __init__(self, colors: dict | None = None, surface_marks=('P1', 'P2'), *,
-                 min_area_px: float = 30.0, min_contrast: float = 25.0,
+                 geometry: MarkGeometry | None = None, bounds: FitBounds | None = None,
+                 max_fits: int = 8, min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
                  min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 100,
                  coarse_step: int = 4, mark_radius: float = float(np.radians(9.0))):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
             raise ValueError("colors must contain 'body'")
+        _check_distinct(self.colors, body_chroma_tol, chroma_tol)
         self.silhouette = SilhouetteFinder(
             self.colors['body'], min_area_px=min_area_px, min_contrast=min_contrast,
             body_chroma_tol=body_chroma_tol, K=K, max_edge_points=max_edge_points,
-            coarse_step=coarse_step)
+            coarse_step=coarse_step,
+            marks=[c for k, c in self.colors.items() if k != 'body'], mark_chroma_tol=chroma_tol)
         self.marks = MarkFinder(self.colors, surface_marks, chroma_tol=chroma_tol,
                                 min_mark_px=min_mark_px, mark_radius=mark_radius)
         self.mark_names = self.marks.mark_names
+        self.geometry = geometry
+        self.bounds = FitBounds() if bounds is None else bounds
+        self.max_fits = int(max_fits)
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'Detector':
-        """Build the detector for the colours and mark names of ``target``."""
+        """
+        Build the detector of ``target``: its colours, mark names, cap radius, marks' layout.
+
+        The fit bounds follow the body's shape (:meth:`FitBounds.for_target`).
+        """
         a, b = target.mark_names
         cols = target.colors
         colors = {'body': cols['body'], a: cols[a], b: cols.get(b, cols.get('P2'))}
         surface = (a, b) if target.kind == SPECIAL else (a,)
         kw.setdefault('mark_radius', target.mark_radius)
+        kw.setdefault('geometry', MarkGeometry.for_target(target))
+        kw.setdefault('bounds', FitBounds.for_target(target))
         return cls(colors, surface, **kw)
 
     def detect(self, image: np.ndarray, encoding: str, camera) -> Detection:
         """
-        Detect the sphere and the marks in ``image`` with the intrinsics ``camera``.
+        Detect the target and its marks in ``image`` with the intrinsics ``camera``.
 
         ``image``: (H, W, 3) for rgb8/bgr8, (H, W) or (H, W, 1) for mono8, uint8;
         ``camera``: anything with px, py, u0, v0 (a :class:`CameraIntrinsics`). Raises
         ``ValueError`` on a bad image/encoding/intrinsics; returns ``Detection(found=False,
-        not_detected=...)`` when there is no usable target.
+        not_detected=...)`` when there is no usable target (module docstring: the choice).
         """
         intr = camera_intrinsics(camera)
         img = check_image(image, encoding)
         rgb = None if img.ndim == 2 else (img if encoding == 'rgb8' else img[..., ::-1])
-        sil = self.silhouette.find(img, rgb)
-        if isinstance(sil, NotDetected):
-            return Detection.missed(sil, self.marks.not_visible())
+        found = self.silhouette.candidates(img, rgb)
+        if isinstance(found, NotDetected):
+            return Detection.missed(found, self.marks.not_visible())
+        s = found.step
+        todo = list(reversed(found.blobs))              # a stack: the next one last
+        miss, accepted, seen = None, [], []
+        while todo and len(seen) < self.max_fits:
+            blob = todo.pop()
+            u, v = blob.centre(s)
+            if any(c.sure and _inside(c.sil, u, v) for c in accepted):
+                continue                    # a part, or another level, of a sure fit
+            sil = self.silhouette.fit(blob, img, rgb, s)
+            if not isinstance(sil, NotDetected):
+                (cu, cv_), _, _ = sil.ellipse
+                if not any(_inside(o, cu, cv_) for o in seen):
+                    seen.append(sil)        # a sphere-like object (bounds or not)
+                sil = self._candidate(sil, img, encoding, rgb, intr)
+            if isinstance(sil, NotDetected) or not sil.sure:
+                # its level may have cut into the sphere's shaded side: try the blob grown
+                # down to the level of the background around it, next
+                grown = found.grown(blob)
+                if grown is not None:
+                    todo.append(grown)
+            if isinstance(sil, NotDetected):
+                if miss is None or _STAGE[sil.reason] > _STAGE[miss.reason]:
+                    miss = sil
+                continue
+            if sil.sure and sil.n_marks == len(self.mark_names):
+                return self._found(sil)     # the target: a sure fit, all its marks fit
+            accepted.append(sil)
+        if accepted:
+            # most marks, then the edge contrasted around most of the contour, then the
+            # tightest fit (of the levels of one object, the one that does not cut into its
+            # shaded side); pixel figures only, so the choice does not depend on the
+            # intrinsics the detector is given
+            best = min(accepted, key=lambda c: (-c.n_marks, -c.sil.coverage, c.sil.rms_px))
+            if best.n_marks == 0 and len(seen) > 1:
+                # a sphere without marks among other sphere-like objects: which is it?
+                return Detection.missed(
+                    NotDetected(Reason.AMBIGUOUS, f'{len(seen)} in view'),
+                    self.marks.not_visible())
+            return self._found(best)
+        # no blob with a contrasted edge, and the frame is the body's colour and bright
+        early = miss is None or _STAGE[miss.reason] <= _STAGE[Reason.LOW_CONTRAST]
+        if rgb is not None and early and self.silhouette.fills_frame(rgb):
+            miss = NotDetected(Reason.TOO_LARGE, 'the body fills the frame')
+        return Detection.missed(miss or NotDetected(Reason.NO_BLOB), self.marks.not_visible())
+
+    def _candidate(self, sil: Silhouette, img, encoding: str, rgb, intr
+                   ) -> '_Candidate | NotDetected':
+        """Check one fitted silhouette against the bounds and measure its marks."""
+        why = self.bounds.check(sil)
+        if why is not None:
+            return why
         C_n = conic_pixels_to_normalized(sil.conic_px, *intr)
         try:
             sphere = sphere_from_conic(C_n)
         except MeasurementError as exc:
-            return Detection.missed(NotDetected(Reason.NOT_A_SPHERE, str(exc)),
-                                    self.marks.not_visible())
-        return self._found(sil, C_n, sphere,
-                           self.marks.find(img, encoding, rgb, sphere, sil, intr))
+            return NotDetected(Reason.NOT_A_SPHERE, str(exc))
+        if sil.edge is not None and (sphere.quality > self.bounds.refit_quality
+                                     or not self.bounds.sure(sil)):
+            sil, C_n, sphere = self._drop_foreign_arc(sil, C_n, sphere, intr)
+        why = self.bounds.check(sil, sphere)
+        if why is not None:
+            return why
+        marks = self.marks.find(img, encoding, rgb, sphere, sil, intr)
+        q = {}
+        for name, m in marks.items():
+            if not m.visible:
+                continue
+            if name in self.marks.surface_marks and self.geometry is not None \
+                    and not self.geometry.on_sphere(sphere, m.q):
+                marks[name] = Mark.lost(name, Reason.MARK_OFF_SPHERE, area_px=m.area_px)
+                continue
+            q[name] = m.q
+        if self.geometry is not None and len(q) == len(self.geometry.names) \
+                and set(q) == set(self.geometry.names):
+            why = self.geometry.check(sphere, q)
+            if why is not None:
+                return why
+        return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil))
 
     @staticmethod
-    def _found(sil: Silhouette, C_n: np.ndarray, sphere: SphereMeasurement,
-               marks: dict) -> Detection:
+    def _drop_foreign_arc(sil: Silhouette, C_n, sphere: SphereMeasurement, intr):
+        """
+        Refit without a foreign arc of edge, if there is one and that makes a sphere's image.
+
+        (:func:`~sphere_servo.vision.scoring.foreign_arc`.) The conic of the other points
+        replaces the first one only when at least half the points remain and its quality is
+        at most a third of the first one's.
+        """
+        px, py, u0, v0 = intr
+        E = sil.edge
+        X = np.array([(E[0] - u0) / px, (E[1] - v0) / py, np.ones(E.shape[1])])
+        X /= np.sqrt((X * X).sum(axis=0))
+        keep = foreign_arc(X, 0.5 * (px + py))
+        if keep is None:
+            return sil, C_n, sphere
+        nk = int(np.count_nonzero(keep))
+        if nk < max(10, 0.5 * len(keep)):
+            return sil, C_n, sphere
+        Ek = E[:, keep]
+        C_px = fit_conic(Ek[:2].T)
+        ep = ellipse_params(C_px)
+        C2 = conic_pixels_to_normalized(C_px, *intr)
+        try:
+            sphere2 = sphere_from_conic(C2)
+        except MeasurementError:
+            return sil, C_n, sphere
+        if ep is None or sphere2.quality > sphere.quality / 3.0:
+            return sil, C_n, sphere
+        d = sampson_homogeneous(C_px, Ek)
+        rms = math.sqrt(float(d @ d) / nk)
+        return (replace(sil, conic_px=C_px, rms_px=rms, n_points=nk, ellipse=ep,
+                        coverage=nk / max(sil.n_profiles, 1), edge=Ek), C2, sphere2)
+
+    @staticmethod
+    def _found(cand: _Candidate) -> Detection:
+        sil, sphere = cand.sil, cand.sphere
         c, ax, ang = sil.ellipse
-        return Detection(True, '', C_n, sphere, sphere.quality, sil.rms_px,
-                         (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), marks,
-                         sil.cut_by_border, sil.n_points)
+        return Detection(True, '', cand.C_n, sphere, sphere.quality, sil.rms_px,
+                         (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), cand.marks,
+                         sil.cut_by_border, sil.n_points, coverage=sil.coverage)
 
 
 def detect(image: np.ndarray, encoding: str, camera, target: Target | None = None,

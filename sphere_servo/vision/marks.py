@@ -22,7 +22,9 @@ from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import (MeasurementError, sphere_from_conic,
                                            SphereMeasurement, unit_ray)
 from sphere_servo.core.types import Image, Vec2
+from sphere_servo.vision.caps import match_centroid, tangent_basis
 from sphere_servo.vision.image import chroma_test, to_chroma
+from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.silhouette import Silhouette
 
 _K3 = np.ones((3, 3), np.uint8)
@@ -41,6 +43,8 @@ class Mark:
     partial        a surface cap cut by the limb, whose centre comes from its visible
                    boundary arc (or, if that cannot be measured, the mark is reported not
                    visible).
+    missing        why it is not visible (a :class:`NotDetected` naming the mark), None
+                   when visible.
     """
 
     name: str
@@ -49,13 +53,29 @@ class Mark:
     visible: bool = False
     area_px: float = 0.0
     partial: bool = False
+    missing: NotDetected | None = None
+
+    @classmethod
+    def lost(cls, name: str, reason: Reason, detail: str = '', area_px: float = 0.0,
+             partial: bool = False) -> 'Mark':
+        """Build a mark that is not visible, and why."""
+        return cls(name, area_px=area_px, partial=partial,
+                   missing=NotDetected(reason, detail, name))
 
     @property
     def q(self) -> np.ndarray:
         """Return the unit vector of the mark's centre (camera frame)."""
         if not self.visible or self.xy_normalized is None:
-            raise MeasurementError(f'mark {self.name} is not visible')
+            raise MeasurementError(self.why)
         return unit_ray(self.xy_normalized)
+
+    @property
+    def why(self) -> str:
+        """Why it is not visible, as a message ('' when visible)."""
+        if self.visible:
+            return ''
+        return str(self.missing) if self.missing is not None \
+            else f'mark {self.name} is not visible'
 
 
 class Backprojection(NamedTuple):
@@ -147,15 +167,20 @@ class MarkFinder:
     mark_radius     angular radius (rad) of the painted caps (fits a cap cut by the limb).
     """
 
-    # a cap's (grown) pixels this close to the silhouette (px): the cap is cut by the limb
+    # a cap's (grown) pixels this close to the silhouette (px): the cap may be cut by the limb
     limb_px = 1.5
+    # a cap cut by the limb by more than this (rad) is not measured from its image centroid
+    max_cut = math.radians(2.0)
 
     def __init__(self, colors: dict, surface_marks, *, chroma_tol: float = 0.12,
                  min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0))):
         self.mark_names = tuple(k for k in colors if k != 'body')
         self.surface_marks = set(surface_marks)
+        # a mark off the surface (the CC tip) comes with a stick that may lie across a cap
+        self.has_stick = any(n not in self.surface_marks for n in self.mark_names)
         self.chroma_tol = float(chroma_tol)
         self.min_mark_px = float(min_mark_px)
+        self.mark_radius = float(mark_radius)
         self.cos_mark = float(np.cos(mark_radius))
         body = np.asarray(colors['body'], float)
         # (3, 2): rgb → (a, b) with rgb ≈ a·mark + b·body (least squares)
@@ -172,9 +197,9 @@ class MarkFinder:
         for i, (_, w) in enumerate(tests):
             self._mark_w[4 * i:4 * i + 4, i] = w
 
-    def not_visible(self) -> dict:
-        """Name → an invisible :class:`Mark`, for every mark."""
-        return {n: Mark(n) for n in self.mark_names}
+    def not_visible(self, reason: Reason = Reason.MARK_NOT_FOUND, detail: str = '') -> dict:
+        """Name → an invisible :class:`Mark`, for every mark, and why."""
+        return {n: Mark.lost(n, reason, detail) for n in self.mark_names}
 
     def find(self, img: Image, encoding: str, rgb: Image | None, sphere: SphereMeasurement,
              sil: Silhouette, intr) -> dict:
@@ -184,15 +209,14 @@ class MarkFinder:
         ``rgb`` is its rgb view (None for mono8: no colour, no marks), ``sphere`` and
         ``sil`` the sphere measured from the silhouette, ``intr`` = (px, py, u0, v0).
         """
-        marks = self.not_visible()
         if rgb is None:
-            return marks
+            return self.not_visible(detail='a mono8 image has no colour')
+        marks = self.not_visible(detail='no pixel of its colour on the sphere')
         px, py, u0, v0 = intr
         H, W = img.shape[:2]
         (ecx, ecy), ax, _ = sil.ellipse
         # the CC tip can lie outside the disc; surface marks cannot
-        off_surface = any(n not in self.surface_marks for n in self.mark_names)
-        rad = (1.7 if off_surface else 1.0) * max(ax) + 3
+        rad = (1.7 if self.has_stick else 1.0) * max(ax) + 3
         x0, x1 = max(0, int(ecx - rad)), min(W, int(ecx + rad) + 1)
         y0, y1 = max(0, int(ecy - rad)), min(H, int(ecy + rad) + 1)
         if x0 >= x1 or y0 >= y1:
@@ -282,7 +306,12 @@ class MarkFinder:
                 Ppx[0] += ox
                 Ppx[1] += oy
                 if near_limb:
-                    dsil = np.abs(sampson_homogeneous(C_px, Ppx))
+                    dsig = inside * sampson_homogeneous(C_px, Ppx)     # > 0 inside
+                    dsil = np.abs(dsig)
+                    # a pixel on the limb is partly background, which the unmixing (mark
+                    # vs body) does not know: its mark coverage is at most its coverage by
+                    # the sphere
+                    np.minimum(alpha, np.clip(0.5 + dsig, 0.0, 1.0), out=alpha)
                     if float(dsil.min()) < self.limb_px:
                         # the visible part's mean is biased; use the boundary with the body,
                         # away from the silhouette
@@ -294,13 +323,18 @@ class MarkFinder:
                 alpha = full[yy, xx].astype(np.float64)
             area = float(alpha.sum())
             if area < self.min_mark_px:
+                marks[name] = Mark.lost(name, Reason.MARK_NOT_FOUND,
+                                        f'{area:.1f} px < {self.min_mark_px:.0f}', area)
                 continue
             if name in self.surface_marks:
                 Kinv = np.array([[1.0 / px, 0.0, -u0 / px], [0.0, 1.0 / py, -v0 / py],
                                  [0.0, 0.0, 1.0]])
                 xy = self.cap_centre(sphere, Kinv @ Ppx, alpha, rim, hits=not near_limb)
                 if xy is None:
-                    marks[name] = Mark(name, area_px=area, partial=rim is not None)
+                    marks[name] = Mark.lost(name, Reason.MARK_UNMEASURABLE, area_px=area,
+                                            partial=True) if rim is not None else \
+                        Mark.lost(name, Reason.MARK_FACES_AWAY,
+                                  'its centre on the sphere faces away', area)
                     continue
             else:
                 xy = ball_centre(xx + float(ox), yy + float(oy), alpha, (px, py, u0, v0))
@@ -321,15 +355,18 @@ class MarkFinder:
         unit normals (DESIGN.md §2, second lesson).
 
         ``rim`` (bool mask of the pixels on the cap's boundary with the body, away from the
-        silhouette) is given when the cap is cut by the limb: then the visible part's mean
-        is biased towards the camera, and the centre comes instead from the cap's boundary
-        circle, ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit
-        m, weights cos² i for the back-projection's sensitivity, outliers — the CC stick —
-        dropped) to the rim pixels' normals.
+        silhouette) is given when the cap's image touches the limb: then the visible part's
+        mean is biased towards the camera if the cap is cut, and the back-projection is
+        ill-conditioned there; the centre comes instead from the cap's boundary circle,
+        ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit m, weights
+        cos² i for the back-projection's sensitivity, outliers — the CC stick — dropped) to
+        the rim pixels' normals; when too little rim is seen for that (a small sphere),
+        from the cap's image centroid (:func:`~sphere_servo.vision.caps.match_centroid`:
+        the visible part of the cap of radius ``mark_radius`` about m, projected).
 
         Returns the image of ``s_n,t + m`` (m: the unit normal at the centre), or None when
-        the centre cannot be measured (it faces away from the camera, or too little rim is
-        visible).
+        the centre cannot be measured (it faces away from the camera, or the cap's model
+        finds no visible part).
         """
         k, rho, nn, cos_i = on_sphere(sphere, X, hits and rim is None)
         s_nt = sphere.s_nt
@@ -344,13 +381,32 @@ class MarkFinder:
         m = X @ (c * t) - float(c.sum()) * s_nt
         m /= max(math.sqrt(float(m @ m)), 1e-300)
         if rim is not None:
-            m = self._fit_rim(m, X, k, rho, nn, cos_i, s_nt, rim)
-            if m is None:
+            # near the limb: the rim's circle (outliers, e.g. the CC stick, dropped) or, when
+            # too little rim is seen (a small sphere), the cap's image centroid (caps)
+            m_rim = self._fit_rim(m, X, k, rho, nn, cos_i, s_nt, rim)
+            if m_rim is None and self._cut_by(sphere, m) < self.max_cut:
+                sw = float(w.sum())
+                m_rim = match_centroid(sphere, m, self.mark_radius,
+                                       np.array([float(X[0] @ w) / sw, float(X[1] @ w) / sw]))
+                if m_rim is not None and self._cut_by(sphere, m_rim) >= self.max_cut:
+                    m_rim = None        # a cap mostly hidden: its centroid says too little
+            if m_rim is None:
                 return None
+            m = m_rim
         P = s_nt + m
         if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
             return None
         return P[:2] / P[2]
+
+    def _cut_by(self, sphere: SphereMeasurement, m: np.ndarray) -> float:
+        """
+        Angle (rad) by which the cap of centre normal ``m`` reaches beyond the limb.
+
+        A surface point of normal n is seen iff ``n·(−b) > r_δ``; the cap's farthest point is
+        ``β + ρ`` from −b (β: the angle of m, ρ: the cap's radius). Negative: wholly seen.
+        """
+        beta = math.acos(max(-1.0, min(1.0, -float(m @ sphere.b))))
+        return beta + self.mark_radius - math.acos(sphere.r_delta)
 
     def _fit_rim(self, m, X, k, rho, nn, cos_i, s_nt, rim) -> np.ndarray | None:
         """Fit the unit normal m at the cap's centre to its rim pixels (:meth:`cap_centre`)."""
@@ -366,15 +422,7 @@ class MarkFinder:
         S, mu = (nb * wb) @ nb.T, nb @ wb
         for it in range(6):
             # tangent basis (t1, t2) at m, then one weighted Gauss–Newton step
-            mx, my, mz = m.tolist()
-            if abs(mx) < 0.9:
-                t1x, t1y, t1z = 0.0, -mz, my
-            else:
-                t1x, t1y, t1z = mz, 0.0, -mx
-            tn = 1.0 / math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
-            t1x, t1y, t1z = t1x * tn, t1y * tn, t1z * tn
-            t2 = (my * t1z - mz * t1y, mz * t1x - mx * t1z, mx * t1y - my * t1x)
-            T = np.array([m.tolist(), [t1x, t1y, t1z], t2])
+            T = tangent_basis(m)[[2, 0, 1]]             # rows m, t1, t2
             (m0, a11, a12), (m1, _, a22) = (T[1:] @ S @ T.T).tolist()
             _, v1, v2 = (T @ mu).tolist()
             g1, g2 = m0 - cosr * v1, m1 - cosr * v2
@@ -382,8 +430,7 @@ class MarkFinder:
             if det < 1e-18:
                 return None
             d1, d2 = -(a22 * g1 - a12 * g2) / det, -(a11 * g2 - a12 * g1) / det
-            m = np.array([mx + d1 * t1x + d2 * t2[0], my + d1 * t1y + d2 * t2[1],
-                          mz + d1 * t1z + d2 * t2[2]])
+            m = m + d1 * T[1] + d2 * T[2]
             m /= math.sqrt(float(m @ m))
             if it == 1:                     # drop outliers once (the CC stick's rim)
                 r = np.abs(m @ nb - cosr)

@@ -17,8 +17,10 @@ frame: z forward, x right, y down). The ray is intersected with
 Only the bounding box of the target's image is traced; pixels where the label (background,
 body, mark, stick, tip) changes between neighbours are re-traced with 16 stratified
 sub-samples (box-filter anti-aliasing, 16 distinct offsets along each axis). The background
-is a deterministic smooth gradient with low-frequency texture (or clutter, or a given image).
-Optional Gaussian noise (grey levels), Gaussian blur (pixels) and lighting gain.
+(:mod:`~sphere_servo.vision.backgrounds`) is a deterministic smooth gradient with
+low-frequency texture, clutter, a two-level checkerboard or noise texture, or a given image,
+with distractor spheres and discs drawn into it. Optional Gaussian noise (grey levels),
+Gaussian blur (pixels) and lighting gain.
 """
 from __future__ import annotations
 
@@ -29,8 +31,7 @@ import pinocchio as pin
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.conics import conic_bbox, conic_normalized_to_pixels, sphere_silhouette
 from sphere_servo.core.targets import CC, Target
-
-BACKGROUNDS = ('gradient', 'clutter', 'flat')
+from sphere_servo.vision.backgrounds import draw_distractors, make_background
 
 # labels of what a ray hits first
 MISS, BODY, MARK1, MARK2, STICK, TIP = 0, 1, 2, 3, 4, 5
@@ -41,59 +42,19 @@ _SUB_X = (np.arange(_N_SUB) + 0.5) / _N_SUB - 0.5
 _SUB_Y = ((np.arange(_N_SUB) * 5) % _N_SUB + 0.5) / _N_SUB - 0.5
 
 
-def _make_background(kind, width: int, height: int, rng: np.random.Generator) -> np.ndarray:
-    """
-    Make the (H, W, 3) uint8 background.
-
-    'gradient': dark smooth gradient with low-frequency texture; 'clutter': the same plus
-    random dark-to-mid coloured shapes; 'flat': grey 40; or an (H, W, 3) uint8 array used
-    as is.
-    """
-    if isinstance(kind, np.ndarray):
-        bg = np.asarray(kind)
-        if bg.shape != (height, width, 3) or bg.dtype != np.uint8:
-            raise ValueError(f'background image must be ({height}, {width}, 3) uint8, '
-                             f'got {bg.shape} {bg.dtype}')
-        return bg.copy()
-    if kind not in BACKGROUNDS:
-        raise ValueError(f'background must be one of {BACKGROUNDS} or an image, got {kind!r}')
-    if kind == 'flat':
-        return np.full((height, width, 3), 40, np.uint8)
-    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
-    un, vn = u / width, v / height
-    base = np.stack([25 + 25 * un + 10 * vn, 30 + 20 * vn, 45 + 25 * (1 - un)], axis=-1)
-    tex = np.zeros((height, width), np.float32)
-    for _ in range(6):
-        fx, fy = rng.uniform(2, 12, size=2)
-        ph = rng.uniform(0, 2 * np.pi)
-        tex += np.sin(2 * np.pi * (fx * un + fy * vn) + ph).astype(np.float32)
-    bg = base + 3.0 * tex[..., None]
-    if kind == 'clutter':
-        for _ in range(12):
-            col = tuple(float(c) for c in rng.uniform(20, 110, size=3))
-            cx, cy = rng.uniform(0, width), rng.uniform(0, height)
-            if rng.random() < 0.5:
-                ax = rng.uniform(10, 60, size=2)
-                cv2.ellipse(bg, (int(cx), int(cy)), (int(ax[0]), int(ax[1])),
-                            float(rng.uniform(0, 180)), 0, 360, col, -1, cv2.LINE_AA)
-            else:
-                w, h = rng.uniform(10, 80, size=2)
-                cv2.rectangle(bg, (int(cx), int(cy)), (int(cx + w), int(cy + h)), col, -1)
-        for _ in range(6):
-            p0 = rng.uniform(0, [width, height]).astype(int)
-            p1 = rng.uniform(0, [width, height]).astype(int)
-            cv2.line(bg, tuple(int(x) for x in p0), tuple(int(x) for x in p1),
-                     tuple(float(c) for c in rng.uniform(40, 120, size=3)), 2, cv2.LINE_AA)
-    return np.clip(bg, 0, 255).astype(np.uint8)
-
-
 class Renderer:
     """
     Ray-cast ``rgb8`` images of ``target`` seen by ``camera``.
 
     camera      true intrinsics (a model with plumb_bob distortion is rendered distorted).
-    target      :class:`~sphere_servo.core.targets.Target` (special, CC or balloon).
-    background  'gradient' (default), 'clutter', 'flat' or an (H, W, 3) uint8 image.
+    target      :class:`~sphere_servo.core.targets.Target` (special, CC or balloon): its
+                colours and cap radius are what is painted.
+    background  'gradient' (default), 'clutter', 'flat', 'checker', 'noise' or an
+                (H, W, 3) uint8 image (:func:`~sphere_servo.vision.backgrounds.make_background`);
+                ``levels`` (lo, hi) and ``texture_px`` set the checkerboard and the noise
+                texture.
+    distractors :class:`~sphere_servo.vision.backgrounds.Distractor` spheres and discs
+                (camera frame), drawn behind the target with the construction's light.
     light_dir   (3,) direction *towards* the light in the camera optical frame (a light on
                 the camera, slightly up-left, by default), normalized internally.
     ambient, diffuse, gain   shading ``gain · (ambient + diffuse · max(0, n·l))``; change
@@ -109,7 +70,8 @@ class Renderer:
                  light_dir=(-0.35, -0.45, -0.82), ambient: float = 0.55,
                  diffuse: float = 0.45, gain: float = 1.0, noise_sigma: float = 0.0,
                  blur_sigma: float = 0.0, seed: int = 0, tip_radius: float | None = None,
-                 stick_radius: float | None = None, stick_color=(200, 200, 190)):
+                 stick_radius: float | None = None, stick_color=(200, 200, 190),
+                 levels=(40, 70), texture_px: float = 24.0, distractors=()):
         if not isinstance(camera, CameraIntrinsics):
             raise TypeError(f'camera must be CameraIntrinsics, got {type(camera).__name__}')
         if not isinstance(target, Target):
@@ -125,8 +87,13 @@ class Renderer:
         self.ambient, self.diffuse, self.gain = float(ambient), float(diffuse), float(gain)
         self.noise_sigma, self.blur_sigma = float(noise_sigma), float(blur_sigma)
         self._rng = np.random.default_rng(seed)
-        self.background = _make_background(background, self.W, self.H,
-                                           np.random.default_rng(seed))
+        self.background = make_background(background, self.W, self.H,
+                                          np.random.default_rng(seed), levels=levels,
+                                          texture_px=texture_px)
+        if distractors:
+            self.background = draw_distractors(self.background, camera, distractors,
+                                               self.light_dir, self.ambient, self.diffuse,
+                                               self.gain)
         r = target.radius
         self.tip_radius = 0.12 * r if tip_radius is None else float(tip_radius)
         self.stick_radius = 0.015 * r if stick_radius is None else float(stick_radius)

@@ -1,24 +1,27 @@
 """
-The sphere's silhouette (no ROS): candidate blobs → sub-pixel edge → conic. DESIGN.md §2.
+The sphere's silhouette (no ROS): candidate blob → sub-pixel edge → conic. DESIGN.md §2.
 
-1. ``V = max(R, G, B)`` (marks are as bright as the body in V, so they neither hole nor notch
-   the silhouette), Otsu threshold, outer contours (holes are ignored: "fill the holes").
-2. Pick the candidate blob that is bright, contrasted, elliptical and body-coloured.
-3. Sub-pixel edge: along the coarse ellipse's normal at each contour point that is *not on
-   the image border*, the edge offset is the area under the anti-aliased step,
+1. Candidate blobs of ``V = max(R, G, B)`` (:mod:`~sphere_servo.vision.blobs`: a global
+   Otsu level, then levels local to each merged blob), the elliptical ones first.
+2. For one blob: its contour points that are not on the image border and whose inside is
+   body-coloured give a coarse ellipse.
+3. Sub-pixel edge: along the coarse ellipse's normal at each point on the image, the edge
+   offset is the area under the anti-aliased step,
    ``e = Σ_j c(o_j) − (K + ½)`` with ``c = (I − I_out)/(I_in − I_out)`` clipped to [0, 1],
    unit-spaced samples ``o_j = −K … K`` (exact for a box-filtered or blurred straight edge;
    robust to the shading gradient because the levels are taken just inside and outside).
 4. Conic fit to the edge points (algebraic, Hartley-normalized, Sampson-reweighted,
    outliers — mark notches, the CC stick — rejected), in pixels.
 
-:meth:`SilhouetteFinder.find` returns a :class:`Silhouette` or a :class:`NotDetected`
-whose :class:`Reason` says why.
+Everything here is in pixels and assumes no camera model: the detector maps the conic to
+rays. :meth:`SilhouetteFinder.candidates` lists the blobs, and :meth:`SilhouetteFinder.fit`
+gives for one a :class:`Silhouette` (with the figures the detector scores it by: residual,
+edge coverage, contrast) or a :class:`~sphere_servo.vision.reasons.NotDetected` whose
+:class:`~sphere_servo.vision.reasons.Reason` says why.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 import functools
 import math
 
@@ -28,31 +31,15 @@ import numpy as np
 from sphere_servo.core.conics import (conic_from_rotated_rect, Ellipse, ellipse_params,
                                       fit_conic_homogeneous, homogeneous, sampson_homogeneous)
 from sphere_servo.core.types import Conic, Image
+from sphere_servo.vision.blobs import Blob, BlobFinder, coarse_v, ELLIPTICAL
 from sphere_servo.vision.image import chroma_test, to_chroma
+from sphere_servo.vision.reasons import NotDetected, Reason
 
-
-class Reason(Enum):
-    """Why the sphere was not detected; the value is the message."""
-
-    NO_BLOB = 'no bright blob in the image'
-    TOO_SMALL = 'largest blob too small'
-    TOO_LARGE = 'target too large for the image'
-    NOT_BODY_COLOURED = 'blob is not body-coloured'
-    NOT_ELLIPTICAL = 'blob is not elliptical'
-    FEW_EDGE_POINTS = 'too few clean edge points'
-    LOW_CONTRAST = 'blob contrast too low'
-    NOT_A_SPHERE = 'fitted conic is not a sphere image'
-
-
-@dataclass(frozen=True)
-class NotDetected:
-    """The sphere was not found: the reason and a detail (numbers, the failing check)."""
-
-    reason: Reason
-    detail: str = ''
-
-    def __str__(self) -> str:
-        return self.reason.value + (f' ({self.detail})' if self.detail else '')
+# a blob with less than this fraction of its contour off the image border is not fitted
+MIN_FREE_CONTOUR = 0.3
+# the brightest level of V a body filling the frame may have at its dimmest corner
+# (below, a body-coloured frame is a dim, grey background, not the sphere)
+FILLS_FRAME_MIN_V = 80
 
 
 @dataclass(frozen=True)
@@ -65,7 +52,12 @@ class Silhouette:
     n_points       edge points kept by the final fit.
     ellipse        its :class:`~sphere_servo.core.conics.Ellipse`.
     cut_by_border  the blob touches the image border (fitted on its free contour only).
-    threshold      Otsu threshold of V (grey levels) that separated the blob.
+    threshold      level of V (grey levels) that separated the blob.
+    coverage       fraction of the edge profiles on the image that gave a kept edge point
+                   (1: the edge is contrasted and body-coloured all around).
+    contrast       median step of V across the edge (grey levels).
+    edge           (3, n) the kept edge points, homogeneous pixels ``(u, v, 1)``.
+    n_profiles     edge profiles on the image.
     """
 
     conic_px: Conic
@@ -74,6 +66,30 @@ class Silhouette:
     ellipse: Ellipse
     cut_by_border: bool
     threshold: float
+    coverage: float = 1.0
+    contrast: float = float('nan')
+    edge: np.ndarray | None = None
+    n_profiles: int = 0
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """
+    The candidate blobs of one image, the most sphere-like first.
+
+    blobs     the :class:`~sphere_servo.vision.blobs.Blob` list.
+    step      the subsampling they were found at (full-resolution pixel = step · coarse).
+    """
+
+    blobs: list
+    step: int
+    finder: BlobFinder
+    Vs: Image
+
+    def grown(self, blob: Blob) -> Blob | None:
+        """Return ``blob`` grown down to a level local to it (:meth:`BlobFinder.grow`)."""
+        return None if blob.grown or blob.ellipticity < ELLIPTICAL \
+            else self.finder.grow(self.Vs, blob)
 
 
 def robust_ellipse(pts: np.ndarray, min_keep: int, tol_min: float,
@@ -157,11 +173,15 @@ class SilhouetteFinder:
     K               half-length (px) of the edge profiles (sub-pixel step).
     max_edge_points largest number of edge points of the final fit.
     coarse_step     subsampling of the image in which the blob is found (1: none).
+    marks, mark_chroma_tol
+                    rgb8 colours of the marks and their chromaticity tolerance: a blob
+                    merged with coloured clutter is split into its pixels of the body's
+                    and the marks' colours (:class:`~sphere_servo.vision.blobs.BlobFinder`).
     """
 
     def __init__(self, body, *, min_area_px: float = 30.0, min_contrast: float = 25.0,
                  body_chroma_tol: float = 0.08, K: int = 3, max_edge_points: int = 100,
-                 coarse_step: int = 4):
+                 coarse_step: int = 4, marks=(), mark_chroma_tol: float = 0.12):
         self.min_area_px = float(min_area_px)
         self.min_contrast = float(min_contrast)
         self.body_chroma_tol = float(body_chroma_tol)
@@ -171,33 +191,94 @@ class SilhouetteFinder:
         self.body_chroma = to_chroma(np.asarray(body, float))
         Q, w = chroma_test(self.body_chroma, 1.5 * self.body_chroma_tol)
         self._body_test = {False: Q, True: np.ascontiguousarray(Q[::-1])}, w
+        # the sphere's colours (body and marks) in one product: (3, 4k), block weights (4k, k)
+        tests = [(Q, w)] + [chroma_test(to_chroma(np.asarray(c, float)), mark_chroma_tol)
+                            for c in marks]
+        Qs = np.hstack([t[0] for t in tests])
+        self._sphere_test = {False: Qs, True: np.ascontiguousarray(Qs[::-1])}
+        self._sphere_w = np.zeros((4 * len(tests), len(tests)), np.float32)
+        for i, (_, wi) in enumerate(tests):
+            self._sphere_w[4 * i:4 * i + 4, i] = wi
 
-    def find(self, img: Image, rgb: Image | None) -> Silhouette | NotDetected:
+    def candidates(self, img: Image, rgb: Image | None) -> 'Candidates | NotDetected':
         """
-        Find the silhouette in ``img`` (checked uint8; ``rgb`` its rgb view, None for mono8).
+        Find the candidate blobs of ``img``, the most sphere-like first, and their step.
 
-        The blob is found on a subsampled image (nearest: pixel (i, j) is pixel (s·i, s·j));
-        everything at full resolution happens along the blob's edge and in its box only.
+        ``img`` is checked uint8, ``rgb`` its rgb view (None for mono8). The blobs are
+        found on a subsampled image (nearest: pixel (i, j) is pixel (s·i, s·j)), the
+        elliptical ones first, then by decreasing area; :meth:`fit` works at full
+        resolution along a blob's edge only. A tiny target is searched for at full
+        resolution when the coarse image has no blob large enough. Returns the
+        :class:`Candidates`, or why there is none.
         """
         H, W = img.shape[:2]
         s = max(1, min(self.coarse_step, min(H, W) // 60))
-        res = self._find(img, rgb, s, W, H)
-        if isinstance(res, NotDetected) and s > 1 \
-                and res.reason in (Reason.NO_BLOB, Reason.TOO_SMALL):
-            res = self._find(img, rgb, 1, W, H)         # a tiny target: full resolution
-        if isinstance(res, NotDetected) and rgb is not None and self._fills_frame(rgb):
-            res = NotDetected(Reason.TOO_LARGE, 'the body fills the frame')
-        return res
+        finder, Vs = self._finder(img, rgb, s)
+        blobs, _ = finder.find(Vs)
+        if not blobs and s > 1:
+            s = 1                                       # a tiny target: full resolution
+            finder, Vs = self._finder(img, rgb, s)
+            blobs, _ = finder.find(Vs)
+        if not blobs:
+            return self._no_blob(img, rgb, s)
+        blobs.sort(key=lambda b: (b.ellipticity < ELLIPTICAL, -b.area))
+        return Candidates(blobs, s, finder, Vs)
 
-    def _fills_frame(self, rgb: Image) -> bool:
-        """All four corners and the centre of the image are body-coloured."""
+    def _finder(self, img: Image, rgb: Image | None, s: int) -> tuple[BlobFinder, Image]:
+        """Build the blob finder for step ``s`` and the coarse V image it works on."""
+        coloured = None
+        if rgb is not None:
+            coloured = functools.partial(self._sphere_coloured, img, rgb is not img, s)
+        finder = BlobFinder(self.min_area_px / (s * s), self.min_contrast, coloured=coloured)
+        return finder, coarse_v(img, s)
+
+    def _sphere_coloured(self, img: Image, bgr: bool, s: int, ys: np.ndarray,
+                         xs: np.ndarray) -> np.ndarray:
+        """(N,) bool: the pixels (s·y, s·x) of ``img`` have the body's or a mark's colour."""
+        y = img[ys * s, xs * s].astype(np.float32) @ self._sphere_test[bgr]
+        y *= y
+        return ((y @ self._sphere_w) < 0.0).any(axis=1)
+
+    def _no_blob(self, img: Image, rgb: Image | None, s: int) -> NotDetected:
+        """Say why there is no candidate: the body fills the frame, a tiny blob, or none."""
+        if rgb is not None and self.fills_frame(rgb):
+            return NotDetected(Reason.TOO_LARGE, 'the body fills the frame')
+        Vs = coarse_v(img, s)
+        _, mask = cv2.threshold(Vs, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        if contours:
+            area = max(cv2.contourArea(c) for c in contours) * s * s
+            if 0 < area < self.min_area_px:
+                return NotDetected(Reason.TOO_SMALL,
+                                   f'{area:.0f} px < {self.min_area_px:.0f}')
+        return NotDetected(Reason.NO_BLOB)
+
+    def fills_frame(self, rgb: Image) -> bool:
+        """
+        Tell whether the body fills the frame.
+
+        All four corners and the centre of the image are body-coloured and bright (a dim
+        grey background has the body's chromaticity too); and, a grey wall being as
+        body-coloured as an off-white body, each is at least twice as close to the body's
+        chromaticity as to neutral grey, or — for a body too close to grey to tell —
+        their brightness varies as a shaded sphere's does (by 15 grey levels or more).
+        """
         H, W = rgb.shape[:2]
         k = max(1, min(H, W) // 20)
         patches = [rgb[:k, :k], rgb[:k, -k:], rgb[-k:, :k], rgb[-k:, -k:],
                    rgb[H // 2 - k // 2:H // 2 + k // 2 + 1, W // 2 - k // 2:W // 2 + k // 2 + 1]]
-        return all(np.linalg.norm(to_chroma(p.reshape(-1, 3).mean(axis=0))
-                                  - self.body_chroma) < self.body_chroma_tol
-                   for p in patches)
+        means = [p.reshape(-1, 3).mean(axis=0) for p in patches]
+        grey = np.full(3, 1.0 / 3.0)
+        tinted = np.linalg.norm(self.body_chroma - grey) >= 0.01
+        for m in means:
+            c = to_chroma(m)
+            d_body = np.linalg.norm(c - self.body_chroma)
+            if m.max() < FILLS_FRAME_MIN_V or d_body >= self.body_chroma_tol:
+                return False
+            if tinted and 2.0 * d_body > np.linalg.norm(c - grey):
+                return False
+        v = [float(m.max()) for m in means]
+        return tinted or max(v) - min(v) >= 15.0
 
     def _is_body(self, pix: np.ndarray, bgr: bool = False) -> np.ndarray:
         """(N,) bool: the (N, 3) rgb (bgr if ``bgr``) pixels have the body's chromaticity."""
@@ -206,67 +287,41 @@ class SilhouetteFinder:
         y *= y
         return (y @ w) < 0.0
 
-    def _find(self, img, rgb, s: int, W: int, H: int) -> Silhouette | NotDetected:
+    def fit(self, blob: Blob, img: Image, rgb: Image | None, s: int
+            ) -> Silhouette | NotDetected:
         """
-        Threshold ``V = max(R, G, B)`` of the image subsampled by ``s`` (Otsu).
+        Fit the sub-pixel silhouette of one blob found at step ``s``.
 
-        Then take the largest outer contours and fit each until one is the sphere.
+        Its free contour (off the image border; at least ``MIN_FREE_CONTOUR`` of it) and,
+        in colour, only the points whose inside is body-coloured give the coarse ellipse
+        (:meth:`_fit_blob`).
         """
-        hs, ws = H // s, W // s
+        H, W = img.shape[:2]
+        free = blob.contour[blob.free]
+        if len(free) < 8 or len(free) < MIN_FREE_CONTOUR * len(blob.contour):
+            return NotDetected(Reason.CUT_BY_BORDER,
+                               f'{blob.border_fraction:.0%} of its contour on the border, '
+                               f'> {1 - MIN_FREE_CONTOUR:.0%}')
         if img.ndim == 3:
-            # V of the pixels (s·i, s·j): rows by a strided view, columns as the first
-            # pixel of each group of s (numpy: no thread hand-offs for a 160×120 image)
-            g = img[:hs * s:s, :ws * s].reshape(hs, ws, 3 * s)
-            Vs = np.maximum(np.maximum(g[..., 0], g[..., 1]), g[..., 2])
-        else:
-            Vs = np.ascontiguousarray(img[:hs * s:s, :ws * s:s])
-        thr, mask = cv2.threshold(Vs, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
-                       reverse=True)[:6]
-        miss = NotDetected(Reason.NO_BLOB)
-        for cnt in cands:
-            area = cv2.contourArea(cnt) * s * s
-            if area < self.min_area_px:
-                miss = NotDetected(Reason.TOO_SMALL, f'{area:.0f} px < {self.min_area_px:.0f}')
-                break
-            pts = cnt.reshape(-1, 2)
-            bx, by, bw, bh = cv2.boundingRect(cnt)
-            cut = bx <= 0 or by <= 0 or bx + bw >= ws or by + bh >= hs
-            free = pts
-            if cut:
-                on_border = ((pts[:, 0] <= 0) | (pts[:, 0] >= ws - 1) | (pts[:, 1] <= 0)
-                             | (pts[:, 1] >= hs - 1))
-                free = pts[~on_border]
-                if len(free) < 8 or len(free) < 0.3 * len(pts):
-                    miss = NotDetected(Reason.TOO_LARGE, 'too little of its contour is inside')
-                    continue
-            if img.ndim == 3:
-                # keep the contour points whose inside (2 px towards the blob's centre) is
-                # body-coloured: a bright clutter shape or a mark merged with the sphere
-                # must not pull the coarse ellipse
-                f = free.astype(np.float32)
-                dv = f.sum(axis=0) / len(f) - f
-                dn = np.hypot(dv[:, 0], dv[:, 1])
-                np.maximum(dn, 1e-9, out=dn)
-                dv *= (2.0 / dn)[:, None]
-                dv += f
-                dv += 0.5
-                # flat index of the full-resolution pixel (s·i, s·j)
-                qi = dv.astype(np.intp) @ np.array([s * 3, s * 3 * W], np.intp)
-                body = self._is_body(img.reshape(-1)[qi[:, None] + np.arange(3)],
-                                     bgr=rgb is not img)
-                if np.count_nonzero(body) < max(8, 0.3 * len(free)):
-                    miss = NotDetected(Reason.NOT_BODY_COLOURED)
-                    continue
-                free = free[body]
-            res = self._fit_blob(free.astype(np.float32) * s, img, rgb, s, W, H, cut,
-                                 float(thr))
-            if isinstance(res, NotDetected):
-                miss = res
-                continue
-            return res
-        return miss
+            # keep the contour points whose inside (2 px towards the blob's centre) is
+            # body-coloured: a bright clutter shape or a mark merged with the sphere
+            # must not pull the coarse ellipse
+            f = free.astype(np.float32)
+            dv = f.sum(axis=0) / len(f) - f
+            dn = np.hypot(dv[:, 0], dv[:, 1])
+            np.maximum(dn, 1e-9, out=dn)
+            dv *= (2.0 / dn)[:, None]
+            dv += f
+            dv += 0.5
+            # flat index of the full-resolution pixel (s·i, s·j)
+            qi = dv.astype(np.intp) @ np.array([s * 3, s * 3 * W], np.intp)
+            body = self._is_body(img.reshape(-1)[qi[:, None] + np.arange(3)],
+                                 bgr=rgb is not img)
+            if np.count_nonzero(body) < max(8, 0.3 * len(free)):
+                return NotDetected(Reason.NOT_BODY_COLOURED)
+            free = free[body]
+        return self._fit_blob(free.astype(np.float32) * s, img, rgb, s, W, H, blob.cut,
+                              blob.threshold)
 
     def _fit_blob(self, free: np.ndarray, img, rgb, s: int, W: int, H: int, cut: bool,
                   thr: float) -> Silhouette | NotDetected:
@@ -274,13 +329,15 @@ class SilhouetteFinder:
         Fit the sub-pixel ellipse of a blob from its free contour points.
 
         ``free``: the (N, 2) float32 full-resolution pixels of the contour not on the border
-        (found at step ``s``); ``cut`` and ``thr`` are passed into the result.
+        (found at step ``s``); ``cut`` and ``thr`` (the blob's level) are passed into the
+        result.
 
         Along the coarse ellipse's outward normals (points on the image only), V is sampled
         (bilinear) at unit steps over ±(2s + 4) px; on each profile the edge is the largest
-        fall of V (a mild preference for the middle keeps a nearby clutter edge from
-        winning), and its sub-pixel offset is the area under the anti-aliased step in a
-        window of M = K + 1 samples inside and K outside the nearest sample,
+        fall of V from inside the blob's level ``thr`` (a mild preference for the middle
+        keeps a nearby clutter edge from winning), and its sub-pixel offset is the area
+        under the anti-aliased step in a window of M = K + 1 samples inside and K outside
+        the nearest sample,
         ``e = Σ_j c(o_j) − (M + ½)``, ``c = (I − I_out)/(S − I_out)`` clipped to [0, 1]
         (exact for a box-filtered or blurred straight edge); the inside level S is
         extrapolated from 2 and 3 px inside, since the body's shade changes quickly near
@@ -331,7 +388,11 @@ class SilhouetteFinder:
         # j − M … j + K must fit in the profile)
         drop = np.subtract(prof[:, M:P - K], prof[:, M + 1:P - K + 1], dtype=np.float32)
         drop *= _drop_weight(L)[:, M:P - K]
+        # only a fall whose inside (M px in) is as bright as the blob: a background edge
+        # next to the sphere (a checker square darker than the blob's level) is not its edge
+        drop[prof[:, :P - K - M] < thr] = 0.0
         jj = drop.argmax(axis=1)                    # j − M
+        has_fall = drop[np.arange(N), jj] > 0.0
         base, pick, win3, win1 = _indices(N, P, K)
         jf = jj + base                              # flat index of sample j
         if color:
@@ -355,9 +416,10 @@ class SilhouetteFinder:
         i_out = 0.5 * (win[:, -1] + win[:, -2])
         contrast = i2 - i_out
         k = N // 2
-        med = float(np.partition(contrast, k)[k])
-        if med < self.min_contrast:
-            return NotDetected(Reason.LOW_CONTRAST, f'{med:.0f} < {self.min_contrast:.0f}')
+        med_contrast = float(np.partition(contrast, k)[k])
+        if med_contrast < self.min_contrast:
+            return NotDetected(Reason.LOW_CONTRAST,
+                               f'{med_contrast:.0f} < {self.min_contrast:.0f}')
         # coverage of the samples j … j + K; the M samples inside count 1 each
         S = (i2 - i3)[:, None] * _o1(K)             # S − I_out
         S += contrast[:, None]
@@ -366,7 +428,7 @@ class SilhouetteFinder:
         cov /= S
         np.minimum(np.maximum(cov, 0.0, out=cov), 1.0, out=cov)      # (np.clip is slower)
         csum = cov.sum(axis=1)
-        good = (contrast > 0.5 * self.min_contrast) & (csum < 2.5)
+        good = (contrast > 0.5 * self.min_contrast) & (csum < 2.5) & has_fall
         if color:
             # the edge is the body's only where the inside (M px in) is body-coloured
             body = self._is_body(px3[:, 0], bgr=rgb is not img)
@@ -404,4 +466,4 @@ class SilhouetteFinder:
         if ep is None:
             return NotDetected(Reason.NOT_ELLIPTICAL, 'the fitted conic')
         rms = math.sqrt(float(d @ d) / len(d))
-        return Silhouette(C, rms, len(d), ep, cut, thr)
+        return Silhouette(C, rms, len(d), ep, cut, thr, len(d) / N, med_contrast, E, N)

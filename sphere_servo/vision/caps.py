@@ -1,0 +1,121 @@
+"""
+A painted cap's centre from the first moments of its image (no ROS). DESIGN.md §2.
+
+Near the limb the back-projection of a cap's pixels on the sphere is ill-conditioned (a
+pixel's footprint grows as 1/cos i, and its position on the sphere moves fast with the
+silhouette's error), and a small sphere leaves too little of the cap's rim to fit. The
+cap's *image* is well measured though: its coverage-weighted centroid. For a unit normal
+m at the cap's centre, the cap's points ``n = m cos φ + (e₁ cos ψ + e₂ sin ψ) sin φ``
+(φ ≤ ρ, the cap's angular radius) are ``P/r = s_n,t + n``; those that face the camera
+(``n·P < 0``) project to ``x = P_xy / P_z`` with the normalized image area
+``dA cos i / ‖P‖² · ‖x̄‖³ = dA cos i ‖P‖ / P_z³`` per surface area ``dA``. Their weighted
+mean is the centroid the cap would have; chord steps on m (two tangent angles, a
+forward-difference Jacobian) match it to the measured one. A cap cut by the limb is
+handled by the same model (its hidden part does not project).
+"""
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from sphere_servo.core.measurement import SphereMeasurement
+
+
+@functools.lru_cache(maxsize=16)
+def _cap_samples(rho: float, rings: int = 8, per_ring: int = 16) -> np.ndarray:
+    """
+    (3, N) points of a cap of angular radius ``rho`` about +z, equal surface area each.
+
+    Stratified: ``cos φ`` at the mid-points of ``rings`` equal steps over [cos ρ, 1] (equal
+    areas), ``per_ring`` angles ψ, shifted by half a step every other ring.
+    """
+    c = 1.0 - (np.arange(rings) + 0.5) / rings * (1.0 - math.cos(rho))
+    s = np.sqrt(1.0 - c * c)
+    psi = (np.arange(per_ring)[None, :] + 0.5 * (np.arange(rings)[:, None] % 2)) \
+        * (2 * math.pi / per_ring)
+    return np.stack([(s[:, None] * np.cos(psi)).ravel(), (s[:, None] * np.sin(psi)).ravel(),
+                     np.repeat(c, per_ring)])
+
+
+def tangent_basis(m: np.ndarray) -> np.ndarray:
+    """Rows t1, t2, m: an orthonormal frame whose third axis is the unit m (plain floats)."""
+    mx, my, mz = m.tolist()
+    if abs(mx) < 0.9:
+        a, b, c = 0.0, -mz, my
+    else:
+        a, b, c = mz, 0.0, -mx
+    k = 1.0 / math.sqrt(a * a + b * b + c * c)
+    a, b, c = a * k, b * k, c * k
+    return np.array([[a, b, c], [my * c - mz * b, mz * a - mx * c, mx * b - my * a],
+                     [mx, my, mz]])
+
+
+def predicted_centroid(sphere: SphereMeasurement, m: np.ndarray, rho: float
+                       ) -> np.ndarray | None:
+    """Predict the normalized image centroid (2,) of the cap (m, ρ) (None: hidden)."""
+    n = tangent_basis(m).T @ _cap_samples(rho)                  # (3, N) unit normals
+    P = n + sphere.s_nt[:, None]
+    facing = -np.einsum('ij,ij->j', n, P)                # ‖P‖ cos i
+    z = P[2]
+    ok = (facing > 0) & (z > 0)
+    if not ok.all():
+        if not ok.any():
+            return None
+        P, facing, z = P[:, ok], facing[ok], z[ok]
+    iz = 1.0 / z
+    w = facing * iz * iz * iz                            # cos i ‖P‖ / P_z³
+    sw = float(w.sum())
+    w *= iz
+    return (P[:2] @ w) / sw
+
+
+def _jacobian_inv(sphere, m, rho, c, h: float = 1e-4) -> np.ndarray | None:
+    """Invert d(centroid)/d(tangent angles) at m, by forward differences."""
+    B = tangent_basis(m)
+    J = np.empty((2, 2))
+    for a in range(2):
+        ma = m + h * B[a]
+        ca = predicted_centroid(sphere, ma / math.sqrt(float(ma @ ma)), rho)
+        if ca is None:
+            return None
+        J[:, a] = (ca - c) / h
+    det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+    if abs(det) < 1e-18:
+        return None
+    return np.array([[J[1, 1], -J[0, 1]], [-J[1, 0], J[0, 0]]]) / det
+
+
+def match_centroid(sphere: SphereMeasurement, m0: np.ndarray, rho: float,
+                   centroid: np.ndarray, iters: int = 6, tol: float = 1e-4
+                   ) -> np.ndarray | None:
+    """
+    Find the unit normal m whose cap (radius ``rho``) images with the normalized ``centroid``.
+
+    Chord steps from ``m0`` (the back-projected mean, close) over the two tangent angles:
+    the Jacobian (forward differences) of the first point, renewed after a long step.
+    None when the model has no visible cap or the Jacobian is singular.
+    """
+    m = np.asarray(m0, float) / np.linalg.norm(m0)
+    Ji = None
+    for _ in range(iters):
+        c = predicted_centroid(sphere, m, rho)
+        if c is None:
+            return None
+        if Ji is None:
+            Ji = _jacobian_inv(sphere, m, rho, c)
+            if Ji is None:
+                return None
+        d0, d1 = (Ji @ (centroid - c)).tolist()
+        step = math.hypot(d0, d1)
+        if step > 0.05:                                  # far: a new Jacobian next time
+            Ji = None
+            if step > 0.2:                               # keep the linearization honest
+                d0, d1 = d0 * 0.2 / step, d1 * 0.2 / step
+        B = tangent_basis(m)
+        m = m + d0 * B[0] + d1 * B[1]
+        m /= math.sqrt(float(m @ m))
+        if step < tol:
+            break
+    return m
