@@ -10,7 +10,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export PIP_CONFIG_FILE := /dev/null
 PYTEST_ARGS ?=
 
-.PHONY: venv test demo bench gallery paper study clean
+.PHONY: venv test demo bench gallery paper study video replay browser clean
 
 venv: $(STAMP)
 
@@ -20,8 +20,23 @@ $(STAMP): requirements.txt
 	$(PY) -m pip install --quiet -r requirements.txt
 	@touch $(STAMP)
 
-test: $(STAMP)
+test: $(STAMP) browser
 	$(PY) -m pytest -q $(PYTEST_ARGS) test
+
+# The replay page's test opens it in Debian's chromium: install it when missing (apt-get, as
+# root, as in CI). If that cannot be done, say why here and in the log the test then fails
+# with; the other tests still run.
+CHROMIUM_LOG := $(VENV)/chromium-install.log
+browser: $(STAMP)
+	@command -v chromium >/dev/null 2>&1 || { \
+	  echo "make: installing Debian's chromium for the replay page's browser test"; \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	      apt-get install -y -qq chromium; } > $(CHROMIUM_LOG) 2>&1; \
+	  else echo "not root: cannot apt-get install chromium" > $(CHROMIUM_LOG); fi; \
+	  command -v chromium >/dev/null 2>&1 || { \
+	    echo "make: chromium could not be installed (see $(CHROMIUM_LOG)); the browser" \
+	         "test will fail"; tail -3 $(CHROMIUM_LOG); }; }
 
 demo: $(STAMP)
 	$(PY) -m sphere_servo.experiments.demo
@@ -37,6 +52,16 @@ paper: $(STAMP)
 
 study: $(STAMP)
 	nice $(PY) -m sphere_servo.experiments.study --n 500 --out docs/study --resume
+
+# a video (servo.mp4 + servo.gif) and a 3-D replay page (replay.html) of a recorded run:
+#   make video BAG=runs/<timestamp>/bag     make replay BAG=runs/<timestamp>/bag
+video: $(STAMP)
+	$(if $(BAG),,$(error give the run's bag: make video BAG=runs/<timestamp>/bag))
+	$(PY) -m sphere_servo.experiments.video $(BAG) --gif $(VIDEO_ARGS)
+
+replay: $(STAMP)
+	$(if $(BAG),,$(error give the run's bag: make replay BAG=runs/<timestamp>/bag))
+	$(PY) -m sphere_servo.experiments.replay3d $(BAG) $(REPLAY_ARGS)
 
 clean:
 	rm -rf $(VENV) build install log

@@ -18,8 +18,9 @@ setup(
         ('share/' + package_name + '/config', glob('config/fastdds*.xml')),
     ],
     # the runtime libraries, by their PyPI names (package.xml names their rosdep keys)
-    install_requires=['setuptools', 'backports.zstd', 'example-robot-data', 'lz4', 'matplotlib',
-                      'numpy', 'opencv-python-headless', 'pillow', 'pin', 'PyYAML', 'rosbags'],
+    install_requires=['setuptools', 'backports.zstd', 'example-robot-data', 'imageio-ffmpeg',
+                      'lz4', 'matplotlib', 'meshcat', 'numpy', 'opencv-python-headless',
+                      'pillow', 'pin', 'PyYAML', 'rosbags', 'u-msgpack-python'],
     zip_safe=True,
     maintainer='sphere_servo developers',
     maintainer_email='sphere-servo@example.com',

@@ -155,12 +155,16 @@ def test_the_launch_file_starts_the_scenarios_nodes_with_its_params_files():
 
 PYPI = {'numpy': 'numpy', 'cv2': 'opencv-python-headless', 'pinocchio': 'pin',
         'yaml': 'PyYAML', 'matplotlib': 'matplotlib', 'rosbags': 'rosbags', 'PIL': 'pillow',
-        'backports': 'backports.zstd', 'lz4': 'lz4'}
+        'backports': 'backports.zstd', 'lz4': 'lz4', 'imageio_ffmpeg': 'imageio-ffmpeg',
+        'meshcat': 'meshcat', 'umsgpack': 'u-msgpack-python'}
 ROSDEP = {'numpy': 'python3-numpy', 'cv2': 'python3-opencv', 'pinocchio': 'pinocchio',
           'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib',
           'rosbags': 'python3-rosbags-pip', 'PIL': 'python3-pil',
           # zstd and lz4 (MCAP chunk compressions) come with rosbags, which requires both
-          'backports': 'python3-rosbags-pip', 'lz4': 'python3-rosbags-pip'}
+          'backports': 'python3-rosbags-pip', 'lz4': 'python3-rosbags-pip',
+          'imageio_ffmpeg': 'python3-imageio-ffmpeg-pip', 'meshcat': 'python3-meshcat-pip',
+          # meshcat's wire format (its viewer decodes msgpack): meshcat requires it
+          'umsgpack': 'python3-meshcat-pip'}
 
 
 def _third_party_imports() -> set[str]:

@@ -122,7 +122,8 @@ def _as_rosbags(value, spec, store):
         return cls(**{name: _as_rosbags(getattr(value, name), sub, store)
                       for name, sub in store.fielddefs[detail][1]})
     if kind == Nodetype.BASE:
-        return value
+        # rclpy gives a byte field (DiagnosticStatus.level) as one-byte bytes
+        return value[0] if isinstance(value, bytes) and len(value) == 1 else value
     (sub_kind, sub_detail), _ = detail  # an array or a sequence
     if sub_kind == Nodetype.BASE and sub_detail[0] != 'string':
         return np.asarray(value, dtype=np.dtype(sub_detail[0]))

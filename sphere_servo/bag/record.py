@@ -42,10 +42,12 @@ from sphere_servo.bag.bagio import BagError, check_new_output, qos_time, topic_n
 from sphere_servo.bag.writer import BagWriter
 
 # the pipeline's topics (module docstrings of ros/arm_sim, detector, features, servo):
-# enough to regenerate the features offline (``refeatures``) and to compare with what ran
+# enough to regenerate the features offline (``refeatures``) and to compare with what ran;
+# arm_sim/markers so that Foxglove shows the 3-D scene when the bag is opened
 DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measurement',
                   'features/s_n', 'features/s_n/desired', 'camera/cmd_vel', 'servo/state',
-                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/state', '/diagnostics']
+                  'ground_truth/camera_pose', 'joint_states', 'arm_sim/state', '/diagnostics',
+                  'arm_sim/markers']
 # never recorded by --all (as ros2 bag record --all)
 EXCLUDED = {'/rosout', '/parameter_events'}
 DRAIN_IDLE = 0.05   # s: the drain ends when the subscriptions stay empty this long

@@ -7,8 +7,11 @@ pose and the servo brings it back with ``s_n``, with only the image in the loop.
 
 Prints progress (iteration, ‖s − s*‖) as it goes and writes into ``runs/<timestamp>/``:
 Fig. 3 (s_n error, camera velocities), Fig. 4 (camera trajectory from the ground truth,
-image trajectories of b, P1, P2 from the detector) and the run's rosbag2 (``bag/``). Ends by
-printing where the files are. Exit code 0 only if the servo converged.
+image trajectories of b, P1, P2 from the detector), the run's rosbag2 (``bag/``, with
+``arm_sim/markers``: the 3-D scene for Foxglove), and, made from that bag, the video
+``servo.mp4`` (+ ``servo.gif``, :mod:`~sphere_servo.experiments.video`) and the 3-D replay
+page ``replay.html`` (:mod:`~sphere_servo.experiments.replay3d`). Ends by printing where the
+files are. Exit code 0 only if the servo converged and every file was written.
 
 ``--headless`` runs the kinematic loop instead (no ROS): the special sphere with s_n and the
 CC target with s_cc, s_n and s.
@@ -125,6 +128,24 @@ def ros_figures(sup, out: Path, title: str, feature_set: str = 's_n') -> list[Pa
     return files
 
 
+def watch_files(bag: Path, out: Path, scenario: str) -> list[Path]:
+    """
+    Write the video (+ GIF) and the replay page of the run recorded in ``bag`` into ``out``.
+
+    Raises BagError, SceneError or OSError when one cannot be made.
+    """
+    from sphere_servo.bag.offline import load_settings
+    from sphere_servo.bag.run import load_arm_params, read_run, run_scene
+    from sphere_servo.experiments.replay3d import make_replay
+    from sphere_servo.experiments.video import make_video
+    settings = load_settings(scenario)
+    run = read_run(bag, settings)
+    vid = make_video(run, out / 'servo.mp4', gif=out / 'servo.gif',
+                     target_kind=settings.features.target_kind)
+    page, _ = make_replay(run, run_scene(run, load_arm_params(scenario)), out / 'replay.html')
+    return [vid.path, vid.gif, page]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--out', default='runs', help='parent folder of the run folder')
@@ -138,6 +159,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     out = (Path(args.out) / time.strftime('%Y%m%d-%H%M%S')).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    written = True
     if args.headless:
         ok, files = headless(out, args.gain, args.dt)
     else:
@@ -155,11 +177,18 @@ def main(argv=None) -> int:
         files = ros_figures(sup, out, f'{args.scenario}: {fset} over ROS 2', fset)
         if bag and Path(bag).exists():
             files.append(Path(bag))
+            try:
+                files += watch_files(Path(bag), out, args.scenario)
+            except (ValueError, OSError, ConfigError) as exc:  # BagError, SceneError, ...
+                print(f'demo: error: no video or replay page: {" ".join(str(exc).split())}',
+                      file=sys.stderr)
+                written = False
     print('\nwrote:')
     for f in files:
-        print(f'  {f}')
+        size = sum(p.stat().st_size for p in f.rglob('*')) if f.is_dir() else f.stat().st_size
+        print(f'  {f} ({size / 1e6:.1f} MB)')
     print('converged' if ok else 'DID NOT CONVERGE')
-    return 0 if ok else 1
+    return 0 if ok and written else 1
 
 
 if __name__ == '__main__':

@@ -24,6 +24,12 @@ Jumps (the node's services): ``reset`` (start configuration, at rest, watchdog r
 sim time kept), ``go_start`` / ``go_desired`` (the IK of ``start_cMo`` / ``desired_cMo``,
 from the parameters as they are now), ``hold`` (drop the command). A jump lets one period
 pass, so the new image has a new stamp, which ends the reply.
+
+The 3-D scene for ROS viewers (:meth:`ArmSimCore.markers`): the
+:class:`~sphere_servo.sim.scene.Scene` of the parameters (the UR5's link meshes at the
+frame's joint state, the target and its marks, the camera's frustum, the camera path since
+the last jump, the desired camera of ``desired_cMo``), at the first frame, after each jump
+and then every ``1/markers_rate`` s of sim time.
 """
 from __future__ import annotations
 
@@ -39,9 +45,11 @@ from sphere_servo.pipeline.common import Level, NodeStatus, Reply
 from sphere_servo.pipeline.params import ArmSimParams, ParameterError
 from sphere_servo.sim.arm import (ArmModel, CAMERA_FRAME, pose_from_xyz_rpy, Status, StepInfo,
                                   TwistError)
+from sphere_servo.sim.scene import CameraPath, MarkerSpec, Scene, SceneError
 from sphere_servo.vision.renderer import Renderer
 
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
+PATH_POINTS = 500  # the camera path's markers keep at most this many points
 LEVELS = {Status.OK: Level.OK, Status.SINGULARITY: Level.WARN,
           Status.JOINT_LIMIT: Level.WARN, Status.TIMEOUT: Level.WARN,
           Status.ERROR: Level.ERROR}
@@ -151,6 +159,26 @@ def _pose(xyz_rpy) -> pin.SE3:
     return pose_from_xyz_rpy(xyz_rpy[:3], xyz_rpy[3:])
 
 
+def sim_arm(p: ArmSimParams) -> ArmModel:
+    """Return the simulated UR5: its URDF, hand-eye transform, target pose, limits, watchdog."""
+    return ArmModel(
+        urdf_path=p.urdf_path or None, tool0Mc=_pose(p.hand_eye), wMo=_pose(p.target_pose),
+        q0=p.start_joints, damping=p.damping, singular_threshold=p.singular_threshold,
+        singular_stop=p.singular_stop, velocity_scale=p.velocity_scale,
+        cmd_timeout=p.cmd_timeout)
+
+
+def sim_scene(p: ArmSimParams, arm: ArmModel | None = None) -> Scene:
+    """
+    Return the 3-D scene of the simulation: the arm, the target, the camera, ``desired_cMo``.
+
+    ``arm``: the simulated arm (:func:`sim_arm` of ``p`` when None). SceneError when the
+    URDF's meshes cannot be found.
+    """
+    return Scene(arm if arm is not None else sim_arm(p), sim_target(p), sim_camera(p),
+                 _pose(p.desired_cMo))
+
+
 class ArmSimCore:
     """The ``arm_sim`` node's logic (see the module docstring)."""
 
@@ -162,11 +190,17 @@ class ArmSimCore:
         self.renderer = Renderer(self.camera, self.target)
         self.dt = 1.0 / p.camera_rate
         self.lockstep = p.clock_mode == 'lockstep'
-        self.arm = ArmModel(
-            urdf_path=p.urdf_path or None, tool0Mc=_pose(p.hand_eye), wMo=_pose(p.target_pose),
-            q0=p.start_joints, damping=p.damping, singular_threshold=p.singular_threshold,
-            singular_stop=p.singular_stop, velocity_scale=p.velocity_scale,
-            cmd_timeout=p.cmd_timeout)
+        self.arm = sim_arm(p)
+        # the viewers' scene; without its meshes the simulation still runs (markers_error)
+        self.scene: Scene | None = None
+        self.markers_error = ''
+        if p.markers_rate > 0:
+            try:
+                self.scene = sim_scene(p, self.arm)
+            except SceneError as exc:
+                self.markers_error = f'no markers: {exc}'
+        self.path = CameraPath(max_points=PATH_POINTS)
+        self._markers_t: float | None = None  # sim time of the last markers (None: due)
         q_start = self.named('start')  # raises if the IK fails: refused at start
         self.named('desired')
         self.arm.q_start = q_start
@@ -239,6 +273,7 @@ class ArmSimCore:
     def frame(self) -> SimFrame:
         """Render the current state (a black image, and why, when rendering fails)."""
         cMo = self.arm.cMo()
+        self.path.add((self.arm.wMo * cMo.inverse()).translation)
         render_error = ''
         try:
             img = self.renderer.render(cMo)
@@ -249,10 +284,29 @@ class ArmSimCore:
                         tuple(self.arm.joint_names), self.arm.q.copy(), self.arm.qdot.copy(),
                         self.arm.info, render_error, self._step_error, self._command_error)
 
+    def markers(self, frame: SimFrame) -> list[MarkerSpec] | None:
+        """
+        Return the 3-D scene at ``frame`` when it is due, else None (module docstring).
+
+        Never with ``markers_rate: 0`` or when the scene could not be built
+        (:attr:`markers_error`). Link poses are the forward kinematics of ``frame.q``.
+        """
+        p = self.params
+        if self.scene is None:
+            return None
+        if self._markers_t is not None and \
+                frame.t - self._markers_t < 1.0 / p.markers_rate - 1e-9:
+            return None
+        self._markers_t = frame.t
+        self.scene.set_desired(_pose(p.desired_cMo))  # a runtime parameter
+        return self.scene.markers(frame.q, self.path.points, p.markers_mesh_uris)
+
     # --- jumps ----------------------------------------------------------------------
     def _jump(self, q, what: str) -> Jump:
         self.arm.set_q(q)
         self.arm.stop()
+        self.path.clear()  # the path of a run starts where the arm jumped to
+        self._markers_t = None
         self.arm.t += self.dt  # one period passes, so the new image has a new stamp
         self.waiting = self.lockstep
         self._step_error = ''

@@ -317,6 +317,14 @@ class ArmSimParams(NodeParams):
                                          'the last image until a command arrives',
                                          bounds=(0.01, 60.0), **FIXED)
     urdf_path: str = param('', "UR5 URDF; '' = find example-robot-data's", **FIXED)
+    markers_rate: float = param(10.0, 'rate (Hz of sim time) of ~/markers, the 3-D scene '
+                                'for RViz and Foxglove; 0: not published', bounds=(0.0, 1000.0),
+                                **FIXED)
+    markers_mesh_uris: str = param('package', "the robot markers' mesh URIs: 'package' "
+                                   '(package://example-robot-data/..., found by a ROS install '
+                                   "of example-robot-data) or 'file' (file:// URIs of this "
+                                   "machine's meshes, for a viewer on this machine without "
+                                   'it)', choices=('package', 'file'), **FIXED)
 
     def validate(self) -> None:
         """Check that the slow-down starts before the stop (singular_threshold > stop)."""

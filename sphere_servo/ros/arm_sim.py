@@ -26,6 +26,16 @@ Publishes (stamps from the simulation clock, which starts at 1.0 s)
     ``/diagnostics``        diagnostic_msgs/DiagnosticArray  the same status, on change and
                             at 1 Hz (hardware_id ``ur5``)
     ``/clock``              rosgraph_msgs/Clock   the simulation time (both clock modes)
+    ``~/markers``           visualization_msgs/MarkerArray  the 3-D scene for RViz and
+                            Foxglove, frame ``world`` (no TF needed), stamped as the frame
+                            it shows: the UR5's link meshes (MESH_RESOURCE, ``package://
+                            example-robot-data/…``; ``markers_mesh_uris: file`` for
+                            ``file://`` URIs) at the forward kinematics of ``joint_states``,
+                            the target and its marks, the camera frustum, the camera path
+                            since the last jump, the desired camera (``desired_cMo``). The
+                            whole scene each time (:mod:`sphere_servo.ros.markers`), at the
+                            first frame, after a jump and every ``1/markers_rate`` s of sim
+                            time (10 Hz; 0: off); reliable, transient-local, depth 1
 Services (std_srvs/Trigger; private, e.g. ``/arm_sim/go_desired``)
     ``~/reset``        start configuration, at rest, watchdog re-armed
     ``~/go_start``     jump to the start configuration (IK of ``start_cMo`` when
@@ -64,10 +74,12 @@ from sphere_servo.pipeline.params import ArmSimParams
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, image_from_array,
                                           pose_from_se3, stamp_from_ns, twist_to_array)
 from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.markers import marker_array, MARKERS_QOS, WORLD_FRAME
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.sim.arm import CAMERA_FRAME
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 DEPTH, IMAGE_DEPTH = 100, 30  # publisher history (messages)
 HARDWARE_ID = 'ur5'
@@ -89,6 +101,9 @@ class ArmSim(Node):
         self.pub_joints = self.create_publisher(JointState, 'joint_states', DEPTH)
         self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', DEPTH)
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
+        self.pub_markers = self.create_publisher(MarkerArray, '~/markers', MARKERS_QOS)
+        if core.markers_error:
+            self.get_logger().warn(core.markers_error)
         self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd, 10)
         for name, jump in (('~/reset', core.reset), ('~/go_start', lambda: core.go('start')),
                            ('~/go_desired', lambda: core.go('desired')),
@@ -153,6 +168,10 @@ class ArmSim(Node):
         for pub, msg in self._last:
             pub.publish(msg)
         self.status.note(f.status())
+        markers = self.core.markers(f)
+        if markers is not None:
+            self.pub_markers.publish(marker_array(markers, Header(stamp=stamp,
+                                                                  frame_id=WORLD_FRAME)))
 
 
 def main(args=None):
