@@ -14,8 +14,10 @@ Publishes (header = the image's header, so stamps flow through the pipeline)
                               found, not_found, rejected (counts), camera, reason
     ``/diagnostics``          the same status, on change and at 1 Hz
 
-A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size) or
-a missing ``camera_info`` is logged as a clear error and answered with an empty measurement
+A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size), a
+missing or refused ``camera_info`` (an impossible K, an unknown distortion model, a
+camera_info of another size than the image, both sizes logged, a non-zero distortion the
+detector does not apply) is logged as a clear error and answered with an empty measurement
 (target lost, so the servo stops); the node keeps running. The logic is
 :class:`~sphere_servo.pipeline.detector.DetectorCore`'s.
 
@@ -34,6 +36,7 @@ from sphere_servo.pipeline.detector import DetectorCore, DetectStatus
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.ros.conversions import image_from_array
 from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.guard import guarded
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import measurement_msg
 from sphere_servo.vision.draw import draw_detection
@@ -63,12 +66,15 @@ class DetectorNode(Node):
             self.get_logger().error(text)
             self._last_error = (text, now)
 
+    @guarded
     def _on_info(self, msg: CameraInfo) -> None:
-        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
+                                       msg.distortion_model)
         if isinstance(cam, Refusal):
             self.get_logger().error(f'bad camera_info, ignored: {cam.reason}',
                                     throttle_duration_sec=2.0)
 
+    @guarded
     def _on_image(self, msg: Image) -> None:
         out = self.core.on_image(msg.height, msg.width, msg.step, msg.encoding, msg.data)
         if out.status is DetectStatus.REJECTED:
@@ -84,6 +90,11 @@ class DetectorNode(Node):
             self.pub_overlay.publish(image_from_array(draw_detection(rgb, out.detection),
                                                       msg.header))
         self.status.update(self.core.status(), msg.header)
+
+    def go_safe(self, msg=None) -> None:
+        """Publish an empty measurement (target lost) for the image whose callback failed."""
+        if isinstance(msg, Image):
+            self.pub.publish(measurement_msg(None, msg.header))
 
 
 def main(args=None):
