@@ -83,6 +83,7 @@ from sphere_servo.ros.conversions import (camera_info_from_intrinsics, image_fro
                                           pose_from_se3, stamp_from_ns, twist_to_array)
 from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import ENABLED_QOS
 from sphere_servo.sim.arm import CAMERA_FRAME
@@ -100,6 +101,7 @@ class ArmSim(Node):
     def __init__(self, **kwargs):
         super().__init__('arm_sim', **kwargs)
         self.core = core = ArmSimCore(declare_all(self, ArmSimParams))
+        self.log = ThrottledLog(self.get_logger())
         # runtime changes: the poses and start_mode (read by the go_* services); the others
         # are read-only
         install_set_callback(self, lambda: core.params, lambda p: setattr(core, 'params', p))
@@ -141,8 +143,7 @@ class ArmSim(Node):
         out = self.core.on_command(twist_to_array(msg.twist), msg.header.frame_id,
                                    info.get('publication_sequence_number'))
         if not out.valid:
-            self.get_logger().warn(f'refusing {out.reason}: command refused, not executed, '
-                                   'arm stopped', throttle_duration_sec=1.0)
+            self.log.warn(f'refusing {out.reason}: command refused, not executed, arm stopped')
         if out.frame is not None:
             self._publish(out.frame)
 
@@ -172,7 +173,10 @@ class ArmSim(Node):
         response.success, response.message = out.success, out.message
         if out.frame is not None:
             self._publish(out.frame)
-        (self.get_logger().info if out.success else self.get_logger().warn)(out.message)
+        if out.success:  # one severity per call site (rclpy's rule)
+            self.get_logger().info(out.message)
+        else:
+            self.get_logger().warn(out.message)
         return response
 
     def go_safe(self, *_) -> None:
@@ -189,8 +193,7 @@ class ArmSim(Node):
         if f.step_error:
             self.get_logger().error(f'simulation step failed, holding still: {f.step_error}')
         if f.render_error:
-            self.get_logger().error(f'render failed: {f.render_error}',
-                                    throttle_duration_sec=1.0)
+            self.log.error(f'render failed: {f.render_error}')
         stamp = stamp_from_ns(f.stamp_ns)
         hdr = Header(stamp=stamp, frame_id=CAMERA_FRAME)
         state = self.status.state_msg(f.status(), hdr)

@@ -26,8 +26,6 @@ the paper's calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``.
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -37,6 +35,7 @@ from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.ros.conversions import image_from_array
 from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import measurement_msg
 from sphere_servo.vision.draw import draw_detection
@@ -57,31 +56,22 @@ class DetectorNode(Node):
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, 10)
-        self._last_error = ('', 0.0)
-
-    def _error(self, text: str) -> None:
-        """Log an error; a repeat of the same text is logged at most once a second."""
-        now = time.monotonic()
-        if text != self._last_error[0] or now - self._last_error[1] > 1.0:
-            self.get_logger().error(text)
-            self._last_error = (text, now)
+        self.log = ThrottledLog(self.get_logger())
 
     @guarded
     def _on_info(self, msg: CameraInfo) -> None:
         cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
                                        msg.distortion_model)
         if isinstance(cam, Refusal):
-            self.get_logger().error(f'bad camera_info, ignored: {cam.reason}',
-                                    throttle_duration_sec=2.0)
+            self.log.error(f'bad camera_info, ignored: {cam.reason}')
 
     @guarded
     def _on_image(self, msg: Image) -> None:
         out = self.core.on_image(msg.height, msg.width, msg.step, msg.encoding, msg.data)
         if out.status is DetectStatus.REJECTED:
-            self._error(f'image rejected: {out.reason}')
+            self.log.error(f'image rejected: {out.reason}')
         elif out.status is DetectStatus.NOT_FOUND:
-            self.get_logger().warn(f'sphere not detected: {out.reason}',
-                                   throttle_duration_sec=2.0)
+            self.log.warn(f'sphere not detected: {out.reason}')
         self.pub.publish(measurement_msg(out.measurement, msg.header))
         if self.core.params.publish_overlay and out.detection is not None:
             img = out.image

@@ -40,6 +40,7 @@ from sphere_servo.pipeline.params import FeaturesParams
 from sphere_servo.ros.conversions import stamp_from_ns
 from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
 from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
                                       measurement_from_msg)
@@ -61,6 +62,7 @@ class FeaturesNode(Node):
                                                          DESIRED_QOS)
                              for name in self.core.names}
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
+        self.log = ThrottledLog(self.get_logger())
         self.last_header: Header | None = None  # of the latest measurement
         self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
         self.create_service(Trigger, '~/teach', self._srv_teach)
@@ -81,7 +83,7 @@ class FeaturesNode(Node):
         out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
                                        msg.distortion_model)
         if isinstance(out, Refusal):
-            self.get_logger().error(out.reason, throttle_duration_sec=5.0)
+            self.log.error(out.reason)
         elif out is not None:  # a file, not an image of the run: a zero stamp
             self._publish_desired(Header(stamp=stamp_from_ns(0), frame_id=msg.header.frame_id))
 
@@ -101,10 +103,9 @@ class FeaturesNode(Node):
                                        msg.header.frame_id)
         if out is not None:
             if out.violation is not None:
-                self.get_logger().error(f'measurement refused, features empty: {out.lost}',
-                                        throttle_duration_sec=2.0)
+                self.log.error(f'measurement refused, features empty: {out.lost}')
             elif out.lost:
-                self.get_logger().warn(f'target lost: {out.lost}', throttle_duration_sec=2.0)
+                self.log.warn(f'target lost: {out.lost}')
             for name, pub in self.pubs.items():
                 fs = out.values.get(name)
                 pub.publish(features_msg(name, msg.header, None if fs is None else fs.s))

@@ -54,6 +54,7 @@ from sphere_servo.pipeline.servo import Ignored, ServoCommand, ServoCore, Unansw
 from sphere_servo.ros.conversions import twist_from_array
 from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
 from sphere_servo.ros.vectors import (desired_from_msg, DESIRED_QOS, desired_topic,
                                       ENABLED_QOS, features_from_msg)
@@ -76,6 +77,7 @@ class ServoNode(Node):
         self.frame_id = CAMERA_FRAME  # of the last image answered
         self.pub_twist = self.create_publisher(TwistStamped, 'camera/cmd_vel', 100)
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.on_tick(0.0).status())
+        self.log = ThrottledLog(self.get_logger(), period=2.0)
         # every frame gets its answer (a 60 Hz camera loses none); which frames are usable
         # is the core's decision: see max_image_age
         self.create_subscription(JointState, f'features/{fset}', self._on_features, 10)
@@ -123,8 +125,8 @@ class ServoNode(Node):
         except MeasurementError as exc:
             reason = str(exc)
         if reason:
-            self.get_logger().error(f'desired features refused, the servo keeps the ones it '
-                                    f'had: {reason}', throttle_duration_sec=2.0)
+            self.log.error(f'desired features refused, the servo keeps the ones it had: '
+                           f'{reason}')
             return
         self.get_logger().info(f'desired features of the image stamped '
                                f'{stamp_text(self.core.desired_stamp_ns)}: '
@@ -143,10 +145,9 @@ class ServoNode(Node):
                                     invalid)
         if isinstance(out, Unanswered):
             if out.why is Ignored.TOO_OLD:
-                self.get_logger().info(
-                    f'skipping features of an image {out.age_ns * 1e-9:.3f} s old '
-                    f'(max_image_age {self.core.max_age_ns * 1e-9:g} s; {out.skipped} so '
-                    'far)', throttle_duration_sec=2.0)
+                self.log.info(f'skipping features of an image {out.age_ns * 1e-9:.3f} s old '
+                              f'(max_image_age {self.core.max_age_ns * 1e-9:g} s; '
+                              f'{out.skipped} so far)')
             return
         self.frame_id = msg.header.frame_id or self.frame_id
         # a refused stamp is answered with a zero twist that answers no image
@@ -165,7 +166,7 @@ class ServoNode(Node):
     def _send(self, cmd: ServoCommand, header: Header | None = None) -> None:
         """Publish the twist (with the answered image's header), then the state."""
         if cmd.fault:
-            self.get_logger().error(f'no valid twist: {cmd.fault}', throttle_duration_sec=2.0)
+            self.log.error(f'no valid twist: {cmd.fault}')
         hdr = header if header is not None else self._unstamped()
         self.pub_twist.publish(TwistStamped(header=hdr, twist=twist_from_array(cmd.twist)))
         age_ns = None
