@@ -130,7 +130,7 @@ class ArmSim(Node):
         if core.lockstep:
             self.create_timer(core.params.idle_republish_period, self._republish)
         else:
-            self.create_timer(core.dt, lambda: self._publish(core.on_tick()))
+            self.create_timer(core.dt, self._tick)
         self._publish(frame)
         p = core.params
         self.get_logger().info(
@@ -183,6 +183,11 @@ class ArmSim(Node):
         """Stop the arm (the guard's answer to a callback that failed)."""
         self.core.arm.stop()
 
+    @guarded
+    def _tick(self) -> None:
+        self._publish(self.core.on_tick())
+
+    @guarded
     def _republish(self) -> None:
         if self.core.republish_due:
             for pub, msg in self._last:
