@@ -189,7 +189,17 @@ def test_a_killed_detector_stops_the_arm_within_the_documented_time(ros_env, tmp
         assert sup.wait(lambda: int(sup.state_values.get('iteration', 0)) > 20, 60.0)
         assert sup.state is ServoState.SERVOING, sup.state
         run.children['detector'].popen.kill()
-        sup.spin(3.0)  # stale by then; the late small messages arrive
+        got = {'n': len(meas), 't': time.monotonic()}
+
+        def settled():  # the dead detector's last words in, a second of rest after them
+            if len(meas) != got['n']:
+                got.update(n=len(meas), t=time.monotonic())
+            if time.monotonic() - got['t'] < 2.0:
+                return False
+            t_last = max(stamp(m) for m in meas)
+            return sum(1 for j in joints if stamp(j) > t_last + bound) > 30
+        # under load Fast DDS delivers small topics up to seconds late: wait for them
+        assert sup.wait(settled, 60.0), (len(meas), len(joints))
         t_last = max(stamp(m) for m in meas)  # the last image the detector measured
         by_stamp = sorted(joints, key=stamp)
         moving = [j for j in by_stamp if np.any(j.velocity)]
