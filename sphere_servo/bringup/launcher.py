@@ -18,6 +18,14 @@ then the others. With ``--record`` the run (teach included) begins once the reco
 reports that it records every topic. With ``--until-converged`` the exit code
 (:class:`ExitCode`) is 0 when the servo reports ``converged``, 1 on timeout, 3 if a node
 died, 4 if the teach sequence failed; 2 is a bad config.
+
+Before anything starts, the scenario is checked as each node would check it
+(:func:`preflight`: its parameters, an unknown name included, and what its core refuses at
+start: a missing ``desired_image``, an unreachable ``start_cMo``, …), and a refusal is the
+node's own line with exit code 2. A node that exits during the start-up or the run ends it
+at once (exit 3), with that node's exit code and last words. The run (the teach sequence
+and its jumps) begins once every node has reported on ``/diagnostics``; the arm never
+jumps unless the servo runs.
 """
 from __future__ import annotations
 
@@ -30,11 +38,20 @@ import time
 
 from sphere_servo.bringup.processes import Launcher, LaunchError
 from sphere_servo.bringup.supervisor import Supervisor
+from sphere_servo.pipeline.arm_sim import ArmSimCore
 from sphere_servo.pipeline.config import ConfigError, Scenario, scenario
+from sphere_servo.pipeline.detector import DetectorCore
+from sphere_servo.pipeline.features import FeaturesCore
+from sphere_servo.pipeline.params import NODE_PARAMS
+from sphere_servo.pipeline.servo import ServoCore
 from sphere_servo.ros.params import StopFlag
 
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
 RECORDER_IDLE_TIMEOUT = 8.0  # wall s the end of a run waits for the late messages to come
+STARTUP_TIMEOUT = 60.0       # wall s the nodes have to start (the servo's first state)
+#: what each node builds at start from its parameters: its core refuses what it cannot use
+NODE_CORES = {'arm_sim': ArmSimCore, 'detector': DetectorCore, 'features': FeaturesCore,
+              'servo': ServoCore}
 
 
 class ExitCode(IntEnum):
@@ -46,6 +63,21 @@ class ExitCode(IntEnum):
     NODE_DIED = 3      # a node exited, or the run could not go on (a service missing)
     TEACH_FAILED = 4   # the teach sequence failed while every node lived
     INTERRUPTED = 130  # Ctrl-C or SIGTERM during --until-converged (128 + SIGINT)
+
+
+def preflight(sc: Scenario) -> str:
+    """
+    Return the line the first node of ``sc`` that would refuse to start prints ('' if none).
+
+    Each node's parameters are built as the node builds them (unknown names refused), then
+    its core, which refuses what it cannot use at start, with the node's own message.
+    """
+    for node in sc.nodes:
+        try:
+            NODE_CORES[node](NODE_PARAMS[node].from_mapping(sc.node_params(node), strict=True))
+        except (ValueError, TypeError, OSError) as exc:  # ParameterError, GeometryError
+            return f'[{node}] refused to start: {" ".join(str(exc).split())}'
+    return ''
 
 
 def run(sc: Scenario, until_converged: bool = False, timeout: float | None = None,
@@ -68,6 +100,14 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         log(f'scenario error ({sc.path}): teach needs the servo disabled until the arm is at '
             'the start pose; set servo start_enabled: false in its params')
         return ExitCode.BAD_CONFIG, None, {}
+    if sc.teach and 'servo' not in sc.nodes:
+        log(f'scenario error ({sc.path}): teach needs the servo among the nodes (the arm '
+            'never jumps without a live servo)')
+        return ExitCode.BAD_CONFIG, None, {}
+    refused = preflight(sc)
+    if refused:
+        log(f'scenario error ({sc.path}), nothing started: {refused}')
+        return ExitCode.BAD_CONFIG, None, {}
     timeout = float(timeout if timeout is not None else sc.timeout)
     launcher = Launcher(sc, out=out, env=env)
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
@@ -89,6 +129,9 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
                          domain_id=int(domain) if domain not in (None, '') else None,
                          stop=lambda: stop.requested)
         alive = lambda: not launcher.dead()  # noqa: E731
+        if not sup.wait_nodes(sc.nodes, STARTUP_TIMEOUT, alive):  # every node runs
+            raise LaunchError(f'nodes not started within {STARTUP_TIMEOUT:g} s: '
+                              f'{sorted(set(sc.nodes) - sup.heard)}')
         if record:
             left = sup.wait_recorder(RECORD_READY_TIMEOUT, alive)
             log('recording every topic' if left is None else
@@ -97,8 +140,9 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
             try:
                 sup.teach(log, alive)
             except LaunchError as exc:
-                log(f'teach sequence failed: {exc}')
-                code = ExitCode.TEACH_FAILED if not launcher.dead() else ExitCode.NODE_DIED
+                dead = launcher.deaths()
+                log(f'teach sequence failed: {dead or exc}')
+                code = ExitCode.NODE_DIED if dead else ExitCode.TEACH_FAILED
                 return code, sup, launcher.stop()
         elif not start_enabled:
             sup.enable_servo(log)
@@ -107,7 +151,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         while True:
             sup.spin(0.05)
             if launcher.dead():
-                log(f'node(s) exited: {", ".join(launcher.dead())}')
+                log(f'node(s) exited: {launcher.deaths()}')
                 code = ExitCode.NODE_DIED
                 break
             now = time.monotonic()
@@ -135,7 +179,8 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         interrupted = True
         log('interrupted: stopping the nodes')
     except LaunchError as exc:
-        log(str(exc))
+        dead = launcher.deaths()
+        log(f'node(s) exited during start-up: {dead}' if dead else str(exc))
         code = ExitCode.NODE_DIED
     finally:
         for sig, handler in old_handlers.items():
@@ -175,7 +220,7 @@ def main(argv=None) -> int:
     except ConfigError as exc:
         print(f'launcher: {exc}', file=sys.stderr)
         return ExitCode.BAD_CONFIG
-    code, _, _ = run(sc, args.until_converged, args.timeout, args.record)
+    code, _, _ = run(sc, args.until_converged, args.timeout, args.record, out=sys.stdout)
     return code
 
 

@@ -12,9 +12,14 @@ still live: it takes what is still on its way before closing the bag), then the 
 SIGINT, then SIGKILL after 10 s. On Linux the nodes are terminated (SIGTERM) if the
 launcher itself dies, even by SIGKILL (``PR_SET_PDEATHSIG``); the kernel ties this to the
 thread that started them, so start a :class:`Launcher` from a thread that outlives the run.
+The last lines each node printed are kept: :meth:`Launcher.deaths` tells why a node exited
+in its own words (``[features] refused to start: …``). The launcher writes no file of its
+own (the nodes read the scenario's params files where they are), so a launcher killed
+with SIGKILL leaves nothing behind.
 """
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass, field
 import os
 import signal
@@ -28,6 +33,7 @@ MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
            'record': 'sphere_servo.bag.record'}
 STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
+LAST_LINES = 20  # lines of each node's output kept, to say why it exited
 
 
 class LaunchError(ConfigError):
@@ -92,14 +98,26 @@ def _die_with(parent_pid: int):
 
 @dataclass
 class Child:
+    """A node's process, the thread forwarding its output, and its last lines."""
+
     name: str
     popen: subprocess.Popen
     thread: threading.Thread | None = None
+    last: collections.deque = field(
+        default_factory=lambda: collections.deque(maxlen=LAST_LINES))
+
+    def why(self) -> str:
+        """Return the node's own account of its exit: its refusal, or its last line."""
+        lines = [ln for ln in self.last if ln.strip()]
+        said = next((ln for ln in reversed(lines) if 'refused to start' in ln), None)
+        return said or (lines[-1] if lines else 'it printed nothing')
 
 
-def _forward(name: str, stream, out) -> None:
+def _forward(child: Child, stream, out) -> None:
     for line in iter(stream.readline, ''):
-        out.write(f'[{name}] {line}' if line.endswith('\n') else f'[{name}] {line}\n')
+        line = line.rstrip('\n')
+        child.last.append(line)
+        out.write(f'[{child.name}] {line}\n')
         out.flush()
     stream.close()
 
@@ -140,9 +158,11 @@ class Launcher:
         popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  text=True, env=env, start_new_session=True,
                                  preexec_fn=_die_with(os.getpid()))
-        t = threading.Thread(target=_forward, args=(name, popen.stdout, self.out), daemon=True)
-        t.start()
-        self.children[name] = Child(name, popen, t)
+        child = Child(name, popen)
+        child.thread = threading.Thread(target=_forward, args=(child, popen.stdout, self.out),
+                                        daemon=True)
+        child.thread.start()
+        self.children[name] = child
 
     def dead(self) -> list[str]:
         """Names of nodes that have exited."""
@@ -152,6 +172,16 @@ class Launcher:
         """Stop ``name`` (SIGINT, then SIGKILL) if it was started; return its exit code."""
         child = self.children.get(name)
         return None if child is None else interrupt(child.popen, timeout)
+
+    def deaths(self) -> str:
+        """Say which nodes exited, with their exit codes and their own last words."""
+        out = []
+        for name in self.dead():
+            c = self.children[name]
+            if c.thread is not None:
+                c.thread.join(2)  # its last lines are still on their way
+            out.append(f'{name} exited with code {c.popen.returncode}: {c.why()}')
+        return '; '.join(out)
 
     def stop(self, timeout: float = 10.0) -> dict[str, int]:
         """Stop every node (servo first), SIGINT then SIGKILL; return the exit codes."""

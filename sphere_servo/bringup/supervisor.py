@@ -74,11 +74,13 @@ class Supervisor:
         self._clients: dict = {}
         self.recent_poses = collections.deque(maxlen=HISTORY_DEPTH)  # (stamp, oMc)
         self.oMc_taught = None  # ground-truth camera pose of the taught image (teach: true)
+        self.heard: set[str] = set()  # nodes whose status came on /diagnostics: they run
         fset = sc.node_params('servo').get('feature_set', 's_n')
         sub = self.node.create_subscription
         # deep histories: under load Fast DDS repairs what loaded sockets dropped in bursts of
         # up to seconds of messages, which a shallow keep-last history would mostly discard
         sub(DiagnosticArray, 'servo/state', self._on_state, HISTORY_DEPTH)
+        sub(DiagnosticArray, '/diagnostics', self._on_diagnostics, HISTORY_DEPTH)
         sub(JointState, desired_topic(fset), self._on_desired, DESIRED_QOS)
         sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, HISTORY_DEPTH)
         sub(JointState, 'detector/measurement', self._on_meas, HISTORY_DEPTH)
@@ -146,6 +148,15 @@ class Supervisor:
             self.t_converged = t
             self.iterations_converged = int(self.state_values.get('iteration', -1))
 
+    def _on_diagnostics(self, msg) -> None:
+        """Note the nodes that report: each names its status ``<node>: state``."""
+        for st in msg.status:
+            self.heard.add(st.name.split(':', 1)[0])
+
+    def wait_nodes(self, names, timeout: float, alive) -> bool:
+        """Wait until every node of ``names`` has reported on /diagnostics (False if not)."""
+        return self.wait(lambda: set(names) <= self.heard, timeout, alive)
+
     def _on_pose(self, msg) -> None:
         """
         Keep the poses; ``last_pose`` is the newest ground truth by stamp.
@@ -204,17 +215,24 @@ class Supervisor:
             self._spin_once(0.02)
         return bool(pred())
 
-    def call(self, service: str, timeout: float = 30.0, enable: bool | None = None):
-        """Call a Trigger service (SetBool with ``enable``); the response, or LaunchError."""
+    def call(self, service: str, timeout: float = 30.0, enable: bool | None = None,
+             alive=lambda: True):
+        """
+        Call a Trigger service (SetBool with ``enable``); the response, or LaunchError.
+
+        ``alive()`` false (a node exited) ends the wait at once.
+        """
         from std_srvs.srv import SetBool, Trigger
         srv = Trigger if enable is None else SetBool
         cli = self.client(service, srv)
-        if not self.wait(cli.service_is_ready, timeout):
-            raise LaunchError(f'service {service} not available after {timeout} s')
+        if not self.wait(cli.service_is_ready, timeout, alive):
+            raise LaunchError(f'service {service} not available after {timeout} s'
+                              if alive() else f'service {service}: a node exited')
         req = srv.Request() if enable is None else SetBool.Request(data=enable)
         fut = cli.call_async(req)
-        if not self.wait(fut.done, timeout):
-            raise LaunchError(f'service {service} did not answer in {timeout} s')
+        if not self.wait(fut.done, timeout, alive):
+            raise LaunchError(f'service {service} did not answer in {timeout} s'
+                              if alive() else f'service {service}: a node exited')
         return fut.result()
 
     def client(self, service: str, srv=None):
@@ -261,14 +279,18 @@ class Supervisor:
 
         The servo must be disabled meanwhile (``start_enabled: false``): a teach can take an
         image from before the jump (it is then taught again), and a servo acting on it would
-        move the arm away from the pose being taught. The servo is enabled once it holds the
+        move the arm away from the pose being taught (arm_sim refuses the jumps anyway while
+        the servo is enabled). The arm jumps only once the servo has reported a state, and
+        while no node has exited (``alive``). The servo is enabled once it holds the
         desired features of the image taught last (its state's ``desired_stamp``).
         """
         from sphere_servo.sim.arm import pose_from_xyz_rpy
         cMo_d = pose_from_xyz_rpy(*np.split(np.asarray(
             self.scenario.node_params('arm_sim').get('desired_cMo', [0, 0, 0.45, 0, 0, 0]),
             float), 2))
-        res = self.call('/arm_sim/go_desired')
+        if not self.wait(lambda: self.state is not None, 60.0, alive):  # a live servo first
+            raise LaunchError('the servo did not report a state: no jump without a live servo')
+        res = self.jump('/arm_sim/go_desired', alive)
         if not res.success:
             raise LaunchError(f'go_desired failed: {res.message}')
         log(f'arm at the desired pose: {res.message}')
@@ -285,7 +307,7 @@ class Supervisor:
         end = time.monotonic() + 30.0
         while True:  # teach the first measurement taken at the desired pose
             count = self.desired_count
-            res = self.call('/features/teach')
+            res = self.call('/features/teach', alive=alive)
             # the new desired, on its topic, carries the taught image's header
             if res.success and self.wait(lambda: self.desired_count > count, 5.0, alive) \
                     and self.desired[0] / NS >= t_desired - 1e-9:
@@ -297,7 +319,7 @@ class Supervisor:
             self.spin(0.2)
         taught = stamp_text(self.desired[0])
         log(f'desired features taught from the image stamped {taught}')
-        res = self.call('/arm_sim/go_start')
+        res = self.jump('/arm_sim/go_start', alive)
         if not res.success:
             raise LaunchError(f'go_start failed: {res.message}')
         self.t_start = _stamp_in(res.message)  # the first image at the start pose
@@ -313,10 +335,16 @@ class Supervisor:
             raise LaunchError(f'the servo did not get the desired features taught from the '
                               f'image stamped {taught} (it holds '
                               f"{self.state_values.get('desired_stamp', 'none')})")
-        self.enable_servo(log)
+        self.enable_servo(log, alive)
 
-    def enable_servo(self, log) -> None:
-        res = self.call('/servo/enable', enable=True)
+    def jump(self, service: str, alive):
+        """Call an arm_sim jump, only while the servo lives (it has spoken, no node died)."""
+        if self.state is None or not alive():
+            raise LaunchError(f'{service} not called: no jump of the arm without a live servo')
+        return self.call(service, alive=alive)
+
+    def enable_servo(self, log, alive=lambda: True) -> None:
+        res = self.call('/servo/enable', enable=True, alive=alive)
         if not res.success:
             raise LaunchError(f'cannot enable the servo: {res.message}')
         log(res.message)

@@ -16,14 +16,21 @@ Clock modes (``clock_mode``):
   connects late still gets it.
 
 Commands are camera twists in :data:`~sphere_servo.sim.arm.CAMERA_FRAME` (the current
-camera optical frame); one that is not finite, or is in another frame, is refused and not
-executed: in realtime the last valid command stays (until the watchdog), in lockstep the
-period passes with the arm held still.
+camera optical frame). A refused command is not executed and stops the arm at once (zero
+velocity from the next step; in lockstep the period passes with the arm held still): one
+that is not finite, beyond the arm's physical bound (``ArmModel.check_twist``) or in
+another frame; any command while the arm is held (:meth:`ArmSimCore.hold`) or in the
+``error`` state; and a command from a second publisher (:meth:`ArmSimCore.on_command`'s
+``seq``: one driver at a time).
 
 Jumps (the node's services): ``reset`` (start configuration, at rest, watchdog re-armed,
-sim time kept), ``go_start`` / ``go_desired`` (the IK of ``start_cMo`` / ``desired_cMo``,
-from the parameters as they are now), ``hold`` (drop the command). A jump lets one period
-pass, so the new image has a new stamp, which ends the reply.
+hold released, sim time kept), ``go_start`` / ``go_desired`` (the IK of ``start_cMo`` /
+``desired_cMo``, from the parameters as they are now). A jump lets one period pass, so the
+new image has a new stamp, which ends the reply. Arming rule: a jump is refused while the
+servo is enabled (:meth:`ArmSimCore.on_servo_enabled`, from the servo's latched
+``servo/enabled``): the arm must not be moved under a servo that drives it.
+``hold`` drops the command and latches: every command is refused until ``release`` or
+``reset``.
 
 The 3-D scene for ROS viewers (:meth:`ArmSimCore.markers`): the
 :class:`~sphere_servo.sim.scene.Scene` of the parameters (the UR5's link meshes at the
@@ -50,6 +57,9 @@ from sphere_servo.vision.renderer import Renderer
 
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
 PATH_POINTS = 500  # the camera path's markers keep at most this many points
+HELD = 'held: commands are refused until ~/release or ~/reset'
+SERVO_ENABLED = ('refused: the servo is enabled (servo/enabled): disable it first '
+                 '(/servo/enable false); a jump under a servo that drives the arm is unsafe')
 LEVELS = {Status.OK: Level.OK, Status.SINGULARITY: Level.WARN,
           Status.JOINT_LIMIT: Level.WARN, Status.TIMEOUT: Level.WARN,
           Status.ERROR: Level.ERROR}
@@ -66,6 +76,8 @@ class SimFrame:
     info         what the last step did (status, joints at a limit, σ_min, scale).
     step_error   why the last step failed, the arm then held still ('' if it did not).
     command_error  why the last command was refused ('' if it was not).
+    held         the hold is latched: commands are refused until release or reset.
+    command_publishers  the publishers of commands, when there are more than one.
     """
 
     t: float
@@ -78,6 +90,8 @@ class SimFrame:
     render_error: str = ''
     step_error: str = ''
     command_error: str = ''
+    held: bool = False
+    command_publishers: tuple[str, ...] = ()
 
     @property
     def stamp_ns(self) -> int:
@@ -89,12 +103,14 @@ class SimFrame:
         """
         Return how serious the frame's status is.
 
-        ERROR when the step or the render failed; WARN at a limit, near a singularity, on a
-        timeout, or after a refused command; OK else.
+        ERROR when the step or the render failed, or the arm is in error; WARN at a limit,
+        near a singularity, on a timeout, after a refused command, while held, or with
+        commands from more than one publisher; OK else.
         """
         if self.step_error or self.render_error:
             return Level.ERROR
-        return max(LEVELS[self.info.status], Level.WARN if self.command_error else Level.OK)
+        warn = self.command_error or self.held or len(self.command_publishers) > 1
+        return max(LEVELS[self.info.status], Level.WARN if warn else Level.OK)
 
     def status_values(self) -> dict[str, str]:
         """Return the status values, key → text, in the published order."""
@@ -105,6 +121,10 @@ class SimFrame:
                           ('step_error', self.step_error), ('render_error', self.render_error)):
             if text:
                 v[key] = text
+        if self.held:
+            v['hold'] = HELD
+        if len(self.command_publishers) > 1:
+            v['command_publishers'] = ','.join(self.command_publishers)
         return v
 
     def status(self) -> NodeStatus:
@@ -132,13 +152,16 @@ class CommandOutcome:
     reason: str = ''
 
 
-def command_refusal(v_c: np.ndarray, frame_id: str) -> str:
-    """Return why a camera twist ``v_c`` in frame ``frame_id`` is refused ('' if it is not)."""
+def frame_refusal(frame_id: str) -> str:
+    """
+    Return why a camera twist in frame ``frame_id`` is refused ('' if it is not).
+
+    Its values are the arm's to judge (``ArmModel.check_twist``: 6 finite numbers within
+    the arm's physical bound).
+    """
     if frame_id != CAMERA_FRAME:
         return (f'a camera twist in frame {frame_id!r}: arm_sim takes twists in '
                 f'{CAMERA_FRAME!r} only')
-    if v_c.shape != (6,) or not np.all(np.isfinite(v_c)):
-        return f'a non-finite camera twist {v_c.ravel().tolist()}'
     return ''
 
 
@@ -208,6 +231,11 @@ class ArmSimCore:
         self.waiting = self.lockstep  # re-publish the first frame until a command comes
         self._step_error = ''
         self._command_error = ''  # why the last command was refused
+        self.held = False
+        self.servo_enabled = False
+        self.command_publishers: tuple[str, ...] = ()
+        self._last_seq: int | None = None  # sequence number of the last executed command
+        self._seq_t = 0.0                  # and its sim time
 
     def named(self, which: str) -> np.ndarray:
         """
@@ -227,21 +255,25 @@ class ArmSimCore:
         return q
 
     # --- command and time -----------------------------------------------------------
-    def on_command(self, v_c, frame_id: str = CAMERA_FRAME) -> CommandOutcome:
+    def on_command(self, v_c, frame_id: str = CAMERA_FRAME,
+                   seq: int | None = None) -> CommandOutcome:
         """
         Take a camera twist (6,) in frame ``frame_id``; in lockstep, step one period.
 
-        A refused twist (:func:`command_refusal`, or one the arm refuses: beyond its
-        physical bound) is not executed and stops the arm at once; in lockstep the period
-        passes all the same with the arm held still, so the loop gets its image.
+        A refused twist (:meth:`refusal`, or one the arm refuses: not finite, beyond its
+        physical bound, or any in its error state) is not executed and stops the arm at
+        once; in lockstep the period passes all the same with the arm held still, so the
+        loop gets its image.
+        ``seq``: the publisher's sequence number of the message (None: unknown).
         """
         v_c = np.asarray(v_c, dtype=float)
-        reason = command_refusal(v_c, frame_id)
+        reason = self.refusal(frame_id, seq)
         if reason:
             self.arm.stop()
         else:
             try:
                 self.arm.command(v_c)
+                self._last_seq, self._seq_t = seq, self.arm.t
             except TwistError as exc:  # the arm has stopped
                 reason = str(exc)
         self._command_error = reason
@@ -249,6 +281,37 @@ class ArmSimCore:
             return CommandOutcome(not reason, reason=reason)
         self.waiting = False
         return CommandOutcome(not reason, self.advance(), reason)
+
+    def refusal(self, frame_id: str, seq: int | None) -> str:
+        """
+        Return why a command is refused before the arm sees it ('' if it is not).
+
+        Held (:meth:`hold`); another frame (:func:`frame_refusal`); or out
+        of sequence: each publisher numbers its messages, so a number not above the last
+        executed command's, while that command is fresh (within ``cmd_timeout``), comes
+        from a second publisher. Once the last command is older (its driver stopped), or
+        one publisher is left (:meth:`on_command_publishers`), any publisher may drive.
+        """
+        if self.held:
+            return HELD
+        reason = frame_refusal(frame_id)
+        if reason or seq is None or self._last_seq is None:
+            return reason
+        if seq <= self._last_seq and self.arm.t - self._seq_t <= self.params.cmd_timeout:
+            names = ', '.join(self.command_publishers) or 'unknown'
+            return (f'a command out of sequence (number {seq} after {self._last_seq}): from '
+                    f'a second publisher (publishers: {names}); one driver at a time')
+        return ''
+
+    def on_command_publishers(self, names) -> None:
+        """Take the command topic's publishers (node names); one left: it may drive."""
+        self.command_publishers = tuple(names)
+        if len(self.command_publishers) <= 1:
+            self._last_seq = None
+
+    def on_servo_enabled(self, enabled: bool) -> None:
+        """Take whether a servo is enabled (jumps are refused while it is)."""
+        self.servo_enabled = bool(enabled)
 
     def on_tick(self) -> SimFrame:
         """Step one period under the last command (realtime) and return the frame."""
@@ -273,7 +336,9 @@ class ArmSimCore:
     def frame(self) -> SimFrame:
         """Render the current state (a black image, and why, when rendering fails)."""
         cMo = self.arm.cMo()
-        self.path.add((self.arm.wMo * cMo.inverse()).translation)
+        centre = (self.arm.wMo * cMo.inverse()).translation
+        if np.all(np.isfinite(centre)):  # an invalid state is reported, not drawn
+            self.path.add(centre)
         render_error = ''
         try:
             img = self.renderer.render(cMo)
@@ -282,7 +347,8 @@ class ArmSimCore:
             img = np.zeros((self.camera.height, self.camera.width, 3), np.uint8)
         return SimFrame(START_TIME + self.arm.t, img, cMo.inverse(),
                         tuple(self.arm.joint_names), self.arm.q.copy(), self.arm.qdot.copy(),
-                        self.arm.info, render_error, self._step_error, self._command_error)
+                        self.arm.info, render_error, self._step_error, self._command_error,
+                        self.held, self.command_publishers)
 
     def markers(self, frame: SimFrame) -> list[MarkerSpec] | None:
         """
@@ -316,14 +382,27 @@ class ArmSimCore:
                     f'{frame.t:.9f}', frame)
 
     def reset(self) -> Jump:
-        """Go back to the start configuration, at rest, watchdog re-armed (time kept)."""
+        """
+        Go back to the start configuration, at rest, watchdog re-armed (time kept).
+
+        It clears the error state and releases the hold; refused while a servo is enabled.
+        """
+        if self.servo_enabled:
+            return Jump(False, SERVO_ENABLED)
         t = self.arm.t
         self.arm.reset()
         self.arm.t = t
+        self.held, self._last_seq = False, None
         return self._jump(self.arm.q_start, 'start (reset)')
 
     def go(self, which: str) -> Jump:
-        """Jump to the 'start' or 'desired' configuration of the current parameters."""
+        """
+        Jump to the 'start' or 'desired' configuration of the current parameters.
+
+        Refused while a servo is enabled, or when the IK does not reach the pose.
+        """
+        if self.servo_enabled:
+            return Jump(False, SERVO_ENABLED)
         try:
             q = self.named(which)
         except ParameterError as e:
@@ -331,6 +410,13 @@ class ArmSimCore:
         return self._jump(q, which)
 
     def hold(self) -> Jump:
-        """Drop the current command (the arm stops at the next step)."""
+        """Drop the current command (the arm stops at the next step) and latch: see HELD."""
         self.arm.stop()
+        self.held = True
         return Jump(True, 'command dropped')
+
+    def release(self) -> Jump:
+        """Release the hold: commands are executed again (the next one moves the arm)."""
+        was, self.held = self.held, False
+        return Jump(True, 'released: commands are executed again' if was else
+                    'not held: nothing to release')

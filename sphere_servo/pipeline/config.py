@@ -142,7 +142,8 @@ def load_scenario(path: Path) -> Scenario:
     Read and check a scenario file.
 
     Raises ConfigError on an unknown key, an unknown node, a params file that is missing or
-    not a plain params file, or a parameter value a node would refuse.
+    not a plain params file, a parameter value a node would refuse, or a name that is not
+    one of the node's parameters (a node refuses to start with it).
     """
     path = Path(path).resolve()
     data = read_yaml(path)
@@ -172,7 +173,7 @@ def load_scenario(path: Path) -> Scenario:
                   None if record is None else tuple(record), params)
     for node in nodes:
         try:
-            NODE_PARAMS[node].from_mapping(sc.node_params(node))
+            NODE_PARAMS[node].from_mapping(sc.node_params(node), strict=True)
         except ParameterError as exc:
             raise ConfigError(f'{path}: {node}: {exc}') from None
     return sc

@@ -4,10 +4,16 @@ The detector's logic without ROS: camera_info → the camera, an image buffer �
 :class:`DetectorCore` holds the camera of the latest usable ``camera_info`` (its true
 intrinsics with ``intrinsics_error`` applied: relative errors (px, py, u0, v0), the paper's
 calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``) and runs the vision layer's
-:class:`~sphere_servo.vision.detector.Detector` on each image. A bad image (unsupported
-encoding, ``step``/``data`` lengths that disagree, zero size) or a missing camera is
-*rejected*: the result says why, and its measurement is empty (target lost, so the servo
-stops). :meth:`DetectorCore.status` is the node's status: the latest image's outcome.
+:class:`~sphere_servo.vision.detector.Detector` on each image. A camera_info is *refused*
+(no camera, and why) when :func:`camera_from_info` refuses it: a K no camera has (not
+finite, skew, ``fx = 1e300``, a focal length ≤ 0, a principal point far off the image), an
+unknown distortion model, or an ``intrinsics_error`` that makes the camera impossible (the
+error is named). An image is *rejected*, the result says why and its measurement is empty
+(target lost, so the servo stops), on a bad buffer (unsupported encoding, ``step``/``data``
+lengths that disagree, zero size), no usable camera, or a camera the detector cannot use
+for it (:func:`detector_camera`: another size than the image's, or a distortion the
+detector does not apply). :meth:`DetectorCore.status` is the node's status: the latest
+image's outcome.
 """
 from __future__ import annotations
 
@@ -15,7 +21,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 
-from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
+                                             check_camera_for_image)
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.targets import make_target
 from sphere_servo.core.types import Image
 from sphere_servo.pipeline.common import Level, NodeStatus, Refusal
@@ -24,16 +32,42 @@ from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
 
 
+NO_CAMERA = 'no valid camera_info received yet'
+#: the camera models whose distortion the detector applies. It fits the silhouette's conic
+#: and reads the marks with K alone, so none yet: a camera with a distortion (a plumb_bob d
+#: that is not zero, a fisheye, a unified camera) is refused, never silently measured as
+#: a distortion-free pinhole. Lifting the refusal for a model is adding it here.
+DISTORTION_APPLIED: frozenset[type] = frozenset()
+
+
 def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[float] | None,
                      intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.0),
-                     ) -> CameraIntrinsics | Refusal:
-    """Return the camera of camera_info fields with ``intrinsics_error`` applied, or why not."""
+                     distortion_model: str = 'plumb_bob') -> CentralCamera | Refusal:
+    """
+    Return the camera of camera_info fields with ``intrinsics_error`` applied, or why not.
+
+    The model is :func:`~sphere_servo.core.camera_models.camera_from_camera_info_fields`'s
+    (which refuses a K or a distortion no camera has); ``with_error`` names the error
+    parameter that makes the camera impossible.
+    """
     try:
-        cam = CameraIntrinsics.from_camera_info_fields(width, height, k, d)
+        cam = camera_from_camera_info_fields(width, height, k, d, distortion_model)
         ex, ey, eu, ev = intrinsics_error
         return cam.with_error(px=ex, py=ey, u0=eu, v0=ev)
-    except ValueError as exc:
+    except ValueError as exc:  # CameraError and ValueError of the numbers
         return Refusal(str(exc))
+
+
+def detector_camera(camera: CentralCamera, width: int, height: int) -> CentralCamera:
+    """
+    Return ``camera`` if the detector can measure a ``width × height`` image with it.
+
+    The one place of that rule (CameraError otherwise, naming both sizes or the model and
+    its coefficients): the camera's size is the image's, and its distortion is one the
+    detector applies (:data:`DISTORTION_APPLIED`).
+    """
+    return check_camera_for_image(camera, width, height,
+                                  applies_distortion=type(camera) in DISTORTION_APPLIED)
 
 
 class DetectStatus(Enum):
@@ -76,7 +110,8 @@ class DetectorCore:
     def __init__(self, params: DetectorParams):
         self.params = params
         self.detector = Detector.for_target(make_target(params.target_kind))
-        self.camera: CameraIntrinsics | None = None
+        self.camera: CentralCamera | None = None
+        self.refused = ''  # why the latest camera_info was refused ('' if it was not)
         self.last: DetectorOutput | None = None
         self.counts = {status: 0 for status in DetectStatus if status is not DetectStatus.WAITING}
 
@@ -85,22 +120,29 @@ class DetectorCore:
         Return the node's status: the latest image's outcome, and counts.
 
         Values: ``images``, ``found``, ``not_found``, ``rejected`` (counts so far), ``camera``
-        (``yes`` once a usable camera_info came), ``reason`` (why the latest image gave no
+        (``yes`` once a usable camera_info came), ``camera_refused`` (why the latest
+        camera_info was refused, if it was), ``reason`` (why the latest image gave no
         sphere).
         """
         state = DetectStatus.WAITING if self.last is None else self.last.status
         values = {'images': str(sum(self.counts.values())),
                   **{k.name.lower(): str(n) for k, n in self.counts.items()},
                   'camera': 'yes' if self.camera is not None else 'no'}
+        if self.refused:
+            values['camera_refused'] = self.refused
         if self.last is not None and self.last.reason:
             values['reason'] = self.last.reason
         return NodeStatus(state, LEVELS[state], values)
 
     def on_camera_info(self, width: int, height: int, k: Sequence[float],
-                       d: Sequence[float] | None) -> CameraIntrinsics | Refusal:
-        """Take the camera of a camera_info; a refused one leaves no camera."""
-        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error)
-        self.camera = cam if isinstance(cam, CameraIntrinsics) else None
+                       d: Sequence[float] | None,
+                       distortion_model: str = 'plumb_bob') -> CentralCamera | Refusal:
+        """Take the camera of a camera_info; a refused one leaves no camera, and says why."""
+        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error,
+                               distortion_model)
+        refused = isinstance(cam, Refusal)
+        self.camera = None if refused else cam
+        self.refused = cam.reason if refused else ''
         return cam
 
     def on_image(self, height: int, width: int, step: int, encoding: str,
@@ -111,13 +153,19 @@ class DetectorCore:
         return out
 
     def detect(self, height: int, width: int, step: int, encoding: str, data,
-               camera: CameraIntrinsics | None) -> DetectorOutput:
-        """Detect in one image buffer with ``camera`` (None: rejected, no camera yet)."""
+               camera: CentralCamera | None) -> DetectorOutput:
+        """
+        Detect in one image buffer with ``camera``.
+
+        Rejected when ``camera`` is None (no usable camera_info yet), and when the detector
+        cannot use it for this image (:func:`detector_camera`).
+        """
         try:
             img = image_from_buffer(height, width, step, encoding, data)
             if camera is None:
-                raise ValueError('no valid camera_info received yet')
-            det = self.detector.detect(img, encoding, camera)
+                raise ValueError(NO_CAMERA)
+            det = self.detector.detect(img, encoding,
+                                       detector_camera(camera, img.shape[1], img.shape[0]))
         except ValueError as exc:
             return DetectorOutput(DetectStatus.REJECTED, reason=str(exc))
         return DetectorOutput(DetectStatus.FOUND if det.found else DetectStatus.NOT_FOUND,

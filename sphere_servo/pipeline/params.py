@@ -10,6 +10,9 @@ image_tools' cam2image does; rules that tie several parameters together live in 
 dataclass's ``validate``, so a runtime change (:meth:`NodeParams.replace`) obeys them too.
 
 Values are immutable: an array parameter is a tuple of floats (of strings for ``sets``).
+Every number is range-checked, each entry of an array too. Names that are not parameters
+of the node are refused where a mistake is likely (a node's start, a scenario): a misspelt
+``-p gian:=5`` would otherwise be ignored without a word (:func:`check_names`).
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ from sphere_servo.core.control import INTERACTION_CHOICES
 from sphere_servo.core.features import FEATURE_SETS
 
 PI = math.pi
+#: parameters every rclpy node declares itself (Jazzy): known to every node
+ROS_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 TARGET_KINDS = ('special', 'cc', 'balloon')
 _PARAM = 'sphere_servo.param'  # metadata keys of a field
 _NAME = 'sphere_servo.name'
@@ -39,9 +44,10 @@ class Param:
     """
     One parameter: default, description, and constraints.
 
-    bounds   (lo, hi) inclusive for numbers; choices: allowed strings; size: length of an
-    array parameter (its entries must be finite; > 0 too with ``positive``); read_only:
-    cannot change after start.
+    bounds   (lo, hi) inclusive for numbers; for an array, (lo, hi) for every entry or one
+             (lo, hi) per entry. choices: allowed strings; size: length of an array
+             parameter (its entries must be finite; > 0 too with ``positive``); read_only:
+             cannot change after start.
     """
 
     default: object
@@ -65,6 +71,13 @@ def check(name: str, p: Param, value):
             raise ParameterError(f'{name} contains NaN or inf: {list(value)}')
         if p.positive and np.any(arr <= 0):
             raise ParameterError(f'{name} must be > 0, got {list(value)}')
+        if p.bounds is not None:
+            per_entry = p.bounds if isinstance(p.bounds[0], tuple) else (p.bounds,) * p.size
+            for i, (v, (lo, hi)) in enumerate(zip(arr.tolist(), per_entry)):
+                if not lo <= v <= hi:
+                    raise ParameterError(f'{name}[{i}] must be in [{lo:g}, {hi:g}], got {v} '
+                                         f'(in {list(value)})')
+        return value
     if isinstance(p.default, (int, float)) and not isinstance(p.default, bool):
         if not math.isfinite(value):
             raise ParameterError(f'{name} must be finite, got {value}')
@@ -86,6 +99,9 @@ def _typed(name: str, p: Param, value):
         value = float(value) if ok else value
     elif isinstance(d, str):
         ok = isinstance(value, str)
+    elif value is None:  # what ROS gives for `[]`, which has no element type
+        raise ParameterError(f'{name} must be a non-empty list like {list(d)}, got an empty '
+                             'or unset value')
     else:  # an array: numbers, or strings when the default holds strings
         ok = isinstance(value, (list, tuple, np.ndarray, array.array))
         if ok and d and isinstance(d[0], str):
@@ -98,6 +114,25 @@ def _typed(name: str, p: Param, value):
     if not ok:
         raise ParameterError(f'{name} must be of the type of {d!r}, got {value!r}')
     return value
+
+
+def _ros_typed(name: str, p: Param, value) -> None:
+    """
+    Refuse a params-file value that ROS types otherwise than the parameter's default.
+
+    rcl reads ``1`` as an integer and ``[0, 1.5]`` not at all (a sequence of one type
+    only), and rclpy refuses an integer for a declared double: the node would not start.
+    """
+    d = p.default
+    if isinstance(d, float) and isinstance(value, int) and not isinstance(value, bool):
+        raise ParameterError(f'{name} must be a floating-point number: ROS reads {value} as '
+                             f'an integer, write {float(value)}')
+    if isinstance(d, (list, tuple)) and d and isinstance(d[0], float) \
+            and isinstance(value, (list, tuple)) \
+            and any(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        raise ParameterError(f'{name} must be floating-point numbers: ROS reads the '
+                             f'integers in {list(value)} as integers, write '
+                             f'{[float(v) for v in value]}')
 
 
 def param(default, description: str, *, name: str | None = None, **constraints):
@@ -137,17 +172,25 @@ class NodeParams:
         return {name: f.metadata[_PARAM] for name, f in cls._fields()}
 
     @classmethod
-    def from_mapping(cls, values: Mapping | None = None):
+    def from_mapping(cls, values: Mapping | None = None, strict: bool = False):
         """
         Build the parameters from ROS names → values (nested sections allowed).
 
         A missing name takes its default; names that are not parameters of the node (e.g.
-        ``use_sim_time``) are ignored. Raises :class:`ParameterError` on a refused value.
+        ``use_sim_time``) are ignored, unless ``strict`` (values as a params file gives
+        them, before ROS reads them): then a name that is neither the node's nor one of
+        :data:`ROS_PARAMETERS` is refused (:func:`check_names`), and so is a value ROS
+        would type otherwise than the parameter (:func:`_ros_typed`). Raises
+        :class:`ParameterError` on a refused value.
         """
         flat = _flatten(values or {})
+        if strict:
+            check_names(flat, cls.table())
         kw = {}
         for name, f in cls._fields():
             p = f.metadata[_PARAM]
+            if strict and name in flat:
+                _ros_typed(name, p, flat[name])
             value = _typed(name, p, flat.get(name, p.default))
             kw[f.name] = check(name, p, value)
         return cls(**kw)
@@ -168,7 +211,42 @@ class NodeParams:
         """Check the rules that tie parameters together (ParameterError if one fails)."""
 
 
+def check_names(names, own, known=ROS_PARAMETERS) -> None:
+    """
+    Refuse ``names`` that are neither the node's parameters ``own`` nor ``known``.
+
+    ParameterError whose message lists the node's parameters, so a misspelt name is found
+    at once.
+    """
+    own, known = sorted(own), sorted(known)
+    unknown = sorted(n for n in names if n not in own and n not in known)
+    if unknown:
+        raise ParameterError(f'unknown parameter{"s" if len(unknown) > 1 else ""} '
+                             f'{", ".join(unknown)}; the parameters are: {", ".join(own)}'
+                             + (f' (and {", ".join(known)})' if known else ''))
+
+
+def check_intrinsics_error(e) -> None:
+    """
+    Refuse relative intrinsics errors ``(px, py, u0, v0)`` that no camera survives.
+
+    ``px, py``: ``e > −1``, so the focal length ``px·(1 + e)`` stays > 0 (the same rule as
+    :meth:`~sphere_servo.core.central.CentralCamera.with_error`). The bounds of the table
+    (``|e| ≤ 3`` for u0, v0: a centred principal point ``W/2·(1 + e)`` stays within the
+    image's one-image margin, ``core.central.PRINCIPAL_POINT_MARGIN``) come first. What
+    depends on the camera itself is refused when its camera_info comes, naming the error.
+    """
+    for name, v in zip(('px', 'py'), e[:2]):
+        if not v > -1.0:
+            raise ParameterError(f'intrinsics_error {name} = {v} must be > -1: the focal '
+                                 f'length {name}·(1 + e) must stay > 0')
+
+
 FIXED = {'read_only': True}
+#: a pose [x y z roll pitch yaw]: within 100 m, angles within ±2π
+POSE_BOUNDS = ((-100.0, 100.0),) * 3 + ((-2 * PI, 2 * PI),) * 3
+#: relative intrinsics errors (px, py, u0, v0); see check_intrinsics_error
+INTRINSICS_ERROR_BOUNDS = ((-1.0, 1e3), (-1.0, 1e3), (-3.0, 3.0), (-3.0, 3.0))
 
 
 @dataclass(frozen=True)
@@ -197,9 +275,13 @@ class ServoParams(NodeParams):
     tol: float = param(1e-3, 'converged when ‖s − s*‖₂ < tol', bounds=(1e-12, 10.0), **FIXED)
     timeout: float = param(0.5, 'zero twists when no usable features came for this long '
                            '(wall s)', bounds=(0.01, 60.0), **FIXED)
-    max_image_age: float = param(0.5, 'skip features whose image is older than this on the '
+    max_image_age: float = param(0.2, 'skip features whose image is older than this on the '
                                  "node's clock (s); 0: only the current frame (lockstep)",
                                  bounds=(0.0, 60.0), **FIXED)
+    future_tolerance: float = param(0.2, 'refuse features stamped later than this ahead of '
+                                    "the node's clock (s); at least one frame period, as "
+                                    'the clock and the images come on different topics',
+                                    bounds=(0.0, 60.0), **FIXED)
     start_enabled: bool = param(True, 'servo at once; false: send zero twists until '
                                 '~/enable', **FIXED)
     lockstep: bool = param(False, 'the arm is a lockstep simulator (each twist steps it, '
@@ -227,14 +309,18 @@ class FeaturesParams(NodeParams):
                                 choices=('teach', 'pose', 'image'), **FIXED)
     desired_cMo: tuple[float, ...] = param(
         [0.0, 0.0, 0.45, 0.0, 0.0, 0.0], 'desired target pose in the camera [x y z roll '
-        'pitch yaw] (desired_source pose)', size=6, **FIXED)
+        'pitch yaw] (desired_source pose)', size=6, bounds=POSE_BOUNDS, **FIXED)
     desired_image: str = param('', 'desired image file (desired_source image)', **FIXED)
     intrinsics_error: tuple[float, ...] = param(
         [0.0, 0.0, 0.0, 0.0], 'relative errors (px, py, u0, v0) for detecting the desired '
-        'image', size=4, **FIXED)
+        'image', size=4, bounds=INTRINSICS_ERROR_BOUNDS, **FIXED)
+    desired_file: str = param('', 'teach: the file the taught desired is kept in and '
+                              "reloaded from at start (survives a restart); '': none",
+                              **FIXED)
 
     def validate(self) -> None:
-        """Check that ``sets`` names known feature sets, at least one."""
+        """Check ``sets`` (known feature sets, at least one) and ``intrinsics_error``."""
+        check_intrinsics_error(self.intrinsics_error)
         for name in self.sets:
             if name not in FEATURE_SETS:
                 raise ParameterError(f'sets: unknown feature set {name!r}, use '
@@ -251,8 +337,12 @@ class DetectorParams(NodeParams):
                              choices=TARGET_KINDS, **FIXED)
     intrinsics_error: tuple[float, ...] = param(
         [0.0, 0.0, 0.0, 0.0], 'relative errors (px, py, u0, v0) applied to camera_info '
-        '(calibration-error experiment)', size=4, **FIXED)
+        '(calibration-error experiment)', size=4, bounds=INTRINSICS_ERROR_BOUNDS, **FIXED)
     publish_overlay: bool = param(False, 'publish detector/overlay (costs a copy and a draw)')
+
+    def validate(self) -> None:
+        """Check ``intrinsics_error`` (:func:`check_intrinsics_error`)."""
+        check_intrinsics_error(self.intrinsics_error)
 
 
 @dataclass(frozen=True)
@@ -278,31 +368,34 @@ class ArmSimParams(NodeParams):
                                name='camera.height', **FIXED)
     hand_eye: tuple[float, ...] = param(
         [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'tool0Mc: camera optical frame in tool0, [x y z roll '
-        'pitch yaw] (m, rad); identity looks out of the flange', size=6, **FIXED)
+        'pitch yaw] (m, rad); identity looks out of the flange', size=6,
+        bounds=((-1.0, 1.0),) * 3 + POSE_BOUNDS[3:], **FIXED)
     start_mode: str = param('pose', "'pose': start = IK of start_cMo (seeded from the "
                             "desired configuration); 'joints': start = start_joints",
                             choices=('pose', 'joints'))
     start_joints: tuple[float, ...] = param(
         [0.0, -1.57, 1.57, -1.57, -1.57, 0.0], 'UR5 joint configuration (rad): start when '
-        "start_mode = 'joints', IK seed of desired_cMo otherwise", size=6)
+        "start_mode = 'joints', IK seed of desired_cMo otherwise", size=6,
+        bounds=(-2 * PI, 2 * PI))
     start_cMo: tuple[float, ...] = param(
         [0.07, 0.12, 0.56, -0.46, 0.40, -0.72], 'start pose of the target in the camera, '
-        '[x y z roll pitch yaw]', size=6)
+        '[x y z roll pitch yaw]', size=6, bounds=POSE_BOUNDS)
     desired_cMo: tuple[float, ...] = param(
         [0.0, 0.0, 0.45, 0.0, 0.0, 0.0], 'desired pose of the target in the camera (cMo*), '
-        '[x y z roll pitch yaw]', size=6)
+        '[x y z roll pitch yaw]', size=6, bounds=POSE_BOUNDS)
     target_kind: str = param('special', "'special', 'cc' or 'balloon'", choices=TARGET_KINDS,
                              name='target.kind', **FIXED)
     target_radius: float = param(0.05, 'sphere radius r (m), special and cc',
                                  bounds=(1e-4, 10.0), name='target.radius', **FIXED)
     target_axes: tuple[float, ...] = param([0.06, 0.055, 0.045], 'balloon ellipsoid '
                                            'semi-axes (m)', size=3, positive=True,
+                                           bounds=(0.0, 10.0),
                                            name='target.axes', **FIXED)
     target_pose: tuple[float, ...] = param(
         [0.5, 0.1, 0.05, PI, 0.0, -PI / 2], 'wMo: target in the robot world frame, [x y z '
-        'roll pitch yaw]', size=6, **FIXED)
+        'roll pitch yaw]', size=6, bounds=POSE_BOUNDS, **FIXED)
     target_frame: str = param('target', 'frame_id of the ground-truth camera pose', **FIXED)
-    cmd_timeout: float = param(0.5, 'watchdog: zero velocity after this long (s, sim time) '
+    cmd_timeout: float = param(0.2, 'watchdog: zero velocity after this long (s, sim time) '
                                'without a command', bounds=(0.0, 3600.0), **FIXED)
     damping: float = param(0.05, 'maximum damped-least-squares damping (applied at '
                            'sigma_min = 0)', bounds=(0.0, 10.0), **FIXED)

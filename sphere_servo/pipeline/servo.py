@@ -11,10 +11,23 @@ clock (sim time with ``use_sim_time``), ``wall_now`` a monotonic wall clock in s
   ``max_image_age: 0`` answers only the current frame: each command steps the simulator,
   so answering a superseded frame (a backlog that Fast DDS delivers late, in a burst,
   under load) would leave several frames in flight and the run would depend on the load.
+- Stamps (:class:`~sphere_servo.core.stamps.StampRule`, after the two rules above): features
+  stamped more than ``future_tolerance`` ahead of the node's clock, or older than the last
+  image answered (stamps going backwards: another source, a replay), are refused: a zero
+  twist that answers no image (a zero stamp), state ``bad stamp``, and the log says why.
+  A clock that has not started (sim time before the first ``/clock``: 0) judges no stamp
+  in the future; a clock that jumps back (a restarted simulator) restarts the rule.
+- Values: s and s* are checked against their set's physical bounds
+  (:func:`~sphere_servo.core.features.check_feature_vector`): a refused desired leaves the
+  one held; refused features give a zero twist (``target lost``, the error names the bound).
 - Disabled (``start_enabled: false`` until :meth:`ServoCore.enable`): a zero twist.
 - No desired features yet (:meth:`ServoCore.set_desired` not called, or only refused):
   a zero twist, state ``no desired``. The servo pairs each features message with the
-  latest desired it holds.
+  latest desired it holds, while that desired's publisher lives
+  (:meth:`ServoCore.on_desired_publishers`): when none of the publishers of the desired
+  topic it came from is left (the features node died), the desired is dropped, and the
+  state ``no desired`` says ``teach again`` (a restarted features node holds none, unless
+  it keeps it in its ``desired_file``, which it then publishes again).
 - Target or a mark lost, unreadable features, or a law that cannot give a finite twist:
   a zero twist, state ``target lost``.
 - Watchdog (:meth:`ServoCore.on_tick`, on the wall clock, since in lockstep sim time
@@ -32,7 +45,9 @@ from enum import Enum
 import numpy as np
 
 from sphere_servo.core.control import AdaptiveGain, VectorController
+from sphere_servo.core.features import check_feature_vector
 from sphere_servo.core.geometry import GeometryError
+from sphere_servo.core.stamps import StampCheck, StampRule, StampVerdict
 from sphere_servo.core.types import Twist
 from sphere_servo.pipeline.common import Level, NodeStatus, Refusal, stamp_text
 from sphere_servo.pipeline.params import ServoParams
@@ -40,6 +55,9 @@ from sphere_servo.pipeline.vectors import FEATURE_NAMES
 
 LOST = 'the target or a mark is lost'
 NO_DESIRED = 'no desired features yet'
+TEACH_AGAIN = ('no desired features: teach again (the features node that published them '
+               'is gone)')
+FEATURES = 'features'  # the one source of the stamp rule: the features topic
 
 
 class ServoState(str, Enum):
@@ -52,6 +70,7 @@ class ServoState(str, Enum):
     CONVERGED = 'converged'      # ‖s − s*‖ < tol: zero twist
     TARGET_LOST = 'target lost'  # the target or a mark lost, or no valid twist: zero twist
     STALE = 'stale'              # no usable features for longer than the timeout: zero twist
+    BAD_STAMP = 'bad stamp'      # features stamped in the future or going backwards: zero
 
 
 class Ignored(Enum):
@@ -153,28 +172,56 @@ class ServoCore:
         self.feature_set = params.feature_set
         self.timeout = params.timeout
         self.max_age_ns = int(round(params.max_image_age * 1e9))
+        self.stamps = StampRule(int(round(params.future_tolerance * 1e9)))
         self.enabled = params.start_enabled
         self.state = ServoState.WAITING
         self.iteration = 0      # images answered while enabled
         self.skipped = 0        # features skipped as older than max_image_age
         self.last_stamp_ns: int | None = None  # the image answered last
+        self.last_now_ns = 0                   # the node's clock at the last features
         self.last_rx: float | None = None      # wall time of the last usable features
         self.size = len(FEATURE_NAMES[self.feature_set])
         self.s_star: np.ndarray | None = None   # the desired features
         self.desired_stamp_ns: int | None = None
+        self.desired_publishers: frozenset = frozenset()  # of the desired topic, then
+        self.desired_lost = False  # the desired held was dropped: its publisher is gone
 
-    def set_desired(self, s_star, stamp_ns: int) -> Refusal | None:
+    def set_desired(self, s_star, stamp_ns: int,
+                    publishers: frozenset = frozenset()) -> Refusal | None:
         """
         Hold ``s_star`` as the desired features, from the image stamped ``stamp_ns``.
 
-        Refused (the desired held stays) unless it has the set's size and is finite.
+        Refused (the desired held stays) unless it has the set's size, is finite and
+        within the set's physical bounds. ``publishers``: ids of the desired topic's
+        publishers when it came (see :meth:`on_desired_publishers`).
         """
         s_star = np.asarray(s_star, dtype=float)
         if s_star.shape != (self.size,) or not np.all(np.isfinite(s_star)):
             return Refusal(f'desired {self.feature_set} needs {self.size} finite values, got '
                            f'{s_star.ravel().tolist()}')
+        try:
+            s_star = check_feature_vector(self.feature_set, s_star, 's*')
+        except GeometryError as exc:  # FeatureError
+            return Refusal(f'desired {self.feature_set} refused: {exc}')
         self.s_star, self.desired_stamp_ns = s_star, int(stamp_ns)
+        self.desired_publishers = frozenset(publishers)
+        self.desired_lost = False
         return None
+
+    def on_desired_publishers(self, publishers: frozenset) -> bool:
+        """
+        Drop the desired held when none of its topic's publishers of then is left.
+
+        ``publishers``: ids of the desired topic's publishers now. Returns True when the
+        desired was dropped by this call (the servo then says ``teach again``). A desired
+        that came with no publisher ids (a test, a bag) is never dropped.
+        """
+        if self.s_star is None or not self.desired_publishers \
+                or self.desired_publishers & publishers:
+            return False
+        self.s_star, self.desired_stamp_ns, self.desired_lost = None, None, True
+        self.desired_publishers = frozenset()
+        return True
 
     def enable(self, on: bool) -> None:
         """Start (True) or stop (False) servoing; disabled, every answer is a zero twist."""
@@ -194,6 +241,13 @@ class ServoCore:
         if age_ns > self.max_age_ns:  # superseded or late: not usable, not answered
             self.skipped += 1
             return Unanswered(Ignored.TOO_OLD, age_ns, self.skipped)
+        if now_ns < self.last_now_ns:  # the clock jumped back: a restarted simulator
+            self.stamps.forget()
+        self.last_now_ns = now_ns
+        # a clock that has not started (sim time before the first /clock) judges no future
+        verdict = self.stamps.check(FEATURES, stamp_ns, now_ns if now_ns > 0 else stamp_ns)
+        if not verdict.accepted:
+            return self._bad_stamp(verdict)
         self.last_rx = wall_now
         self.last_stamp_ns = stamp_ns
         if not self.enabled:
@@ -201,20 +255,29 @@ class ServoCore:
         self.iteration += 1
         if self.s_star is None:
             return self._command(ServoState.NO_DESIRED, Level.WARN, stamp_ns=stamp_ns,
-                                 reason=NO_DESIRED)
+                                 reason=TEACH_AGAIN if self.desired_lost else NO_DESIRED)
         if invalid:
             return self._stop(ServoState.TARGET_LOST, invalid, stamp_ns, fault=invalid)
         if s is None:
             return self._stop(ServoState.TARGET_LOST, LOST, stamp_ns)
         try:
             out = self.law.compute(s, self.s_star)
-        except GeometryError as exc:  # MeasurementError, ControlError
+        except GeometryError as exc:  # FeatureError, MeasurementError, ControlError
             return self._stop(ServoState.TARGET_LOST, str(exc), stamp_ns, fault=str(exc))
         return self._command(ServoState.CONVERGED if out.converged else ServoState.SERVOING,
                              Level.OK, twist=np.zeros(6) if out.converged else out.v_c,
                              stamp_ns=stamp_ns, converged=out.converged,
                              error_norm=out.error_norm, gain=out.gain,
                              saturated=out.saturated)
+
+    def _bad_stamp(self, check: StampCheck) -> ServoCommand:
+        """Return the zero twist of a refused stamp (it answers no image: no stamp)."""
+        what = 'the clock' if check.verdict is StampVerdict.FUTURE else 'the image answered last'
+        reason = (f'features stamped {stamp_text(check.stamp_ns)} refused: '
+                  f'{check.verdict.value} ({check.delta_ns * 1e-9:+.6f} s from {what}, '
+                  f'{stamp_text(max(check.reference_ns, 0))}; future tolerance '
+                  f'{self.params.future_tolerance:g} s)')
+        return self._command(ServoState.BAD_STAMP, Level.WARN, reason=reason, fault=reason)
 
     def on_tick(self, wall_now: float) -> ServoCommand | None:
         """
@@ -228,8 +291,11 @@ class ServoCore:
         if self.last_rx is None:
             cmd = self._command(ServoState.WAITING, Level.OK, reason='no features yet')
         elif wall_now - self.last_rx > self.timeout:
-            cmd = self._stop(ServoState.STALE,
-                             f'no usable features for more than {self.timeout} s')
+            if self.desired_lost and self.s_star is None:  # why nothing comes: say it
+                cmd = self._command(ServoState.NO_DESIRED, Level.WARN, reason=TEACH_AGAIN)
+            else:
+                cmd = self._stop(ServoState.STALE,
+                                 f'no usable features for more than {self.timeout} s')
         else:
             return None
         cmd.send_twist = not self.params.lockstep

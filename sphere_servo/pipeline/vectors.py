@@ -29,6 +29,7 @@ import numpy as np
 from sphere_servo.core.features import feature_names, FEATURE_SETS
 from sphere_servo.core.measurement import MeasurementError, Observation, SphereMeasurement
 from sphere_servo.core.targets import mark_names
+from sphere_servo.core.validation import check_array, check_number
 from sphere_servo.vision.detector import Detection
 
 SPHERE_NAMES = ('b_x', 'b_y', 'b_z', 'r_delta', 'quality', 'ellipse_u', 'ellipse_v',
@@ -77,7 +78,9 @@ class Measurement:
         Return the :class:`Observation` for ``kind`` ('special': P1, P2; 'cc': P1, P3).
 
         Raises :class:`MeasurementError` when the sphere or one of the two marks is
-        missing, or a value is not finite.
+        missing (the target is lost), or a value is not finite (refused: the error's
+        ``violation`` names it). The physical bounds are
+        :func:`~sphere_servo.core.measurement.validated_observation`'s.
         """
         vals = self.as_dict()
         if not vals:
@@ -87,8 +90,8 @@ class Measurement:
             r_delta = vals['r_delta']
         except KeyError as exc:
             raise MeasurementError(f'measurement lacks {exc.args[0]}') from None
-        if not (np.all(np.isfinite(b)) and np.isfinite(r_delta)):
-            raise MeasurementError('measurement of the sphere is not finite')
+        b = check_array(MeasurementError, 'b', b, (3,))
+        r_delta = check_number(MeasurementError, 'r_delta', r_delta)
         q = {}
         for name in mark_names(kind):
             try:
@@ -96,8 +99,7 @@ class Measurement:
                                     vals[f'{name}_qz']])
             except KeyError:
                 raise MeasurementError(f'mark {name} is not visible') from None
-            if not np.all(np.isfinite(q[name])):
-                raise MeasurementError(f'mark {name} is not finite')
+            q[name] = check_array(MeasurementError, f'{name} ray', q[name], (3,))
         return Observation(SphereMeasurement(b, float(r_delta), vals.get('quality', 0.0)), q,
                            kind)
 

@@ -8,9 +8,16 @@ namespace them as usual).
 Subscribes
     ``camera/cmd_vel``      geometry_msgs/TwistStamped  camera twist (v, ω) in the *current
                             camera optical frame*, m/s and rad/s: ``header.frame_id`` must be
-                            ``camera_optical_frame``. Another frame, NaN or inf → refused
-                            with a warning (throttled) and not executed (in lockstep the
-                            period passes with the arm held still).
+                            ``camera_optical_frame``. Refused (a warning, throttled; not
+                            executed, the arm stopped at once; in lockstep the period passes
+                            with the arm held still): another frame, NaN or inf, beyond the
+                            arm's physical bound, any while held or in ``error``, and one
+                            from a second publisher while another drives (told apart by the
+                            message info's publication sequence numbers: one driver at a
+                            time). Several publishers of the topic are reported (a warning,
+                            and the status value ``command_publishers``).
+    ``servo/enabled``       std_msgs/Bool  the servo's latched mode: the jumps are refused
+                            while it is ``true`` (and its publisher lives)
 Publishes (stamps from the simulation clock, which starts at 1.0 s)
     ``camera/image_raw``    sensor_msgs/Image     rgb8, frame_id ``camera_optical_frame``
     ``camera/camera_info``  sensor_msgs/CameraInfo  the true intrinsics, same header
@@ -22,7 +29,10 @@ Publishes (stamps from the simulation clock, which starts at 1.0 s)
                             OK/WARN/ERROR, message ``ok|joint_limit|singularity|timeout``,
                             values: ``joints`` (names at a limit), ``sigma_min``, ``scale``,
                             ``sim_time``, ``detail``, then when set ``command_error`` (why
-                            the last command was refused), ``step_error``, ``render_error``
+                            the last command was refused), ``step_error``, ``render_error``,
+                            ``hold``, ``command_publishers``; message ``error`` (level
+                            ERROR) once the state became invalid: commands refused until
+                            ``~/reset``
     ``/diagnostics``        diagnostic_msgs/DiagnosticArray  the same status, on change and
                             at 1 Hz (hardware_id ``ur5``)
     ``/clock``              rosgraph_msgs/Clock   the simulation time (both clock modes)
@@ -37,12 +47,17 @@ Publishes (stamps from the simulation clock, which starts at 1.0 s)
                             first frame, after a jump and every ``1/markers_rate`` s of sim
                             time (10 Hz; 0: off); reliable, transient-local, depth 1
 Services (std_srvs/Trigger; private, e.g. ``/arm_sim/go_desired``)
-    ``~/reset``        start configuration, at rest, watchdog re-armed
+    ``~/reset``        start configuration, at rest, watchdog re-armed, hold released,
+                       error cleared
     ``~/go_start``     jump to the start configuration (IK of ``start_cMo`` when
                        ``start_mode = 'pose'``; parameters are re-read, so set ``start_cMo``
                        then call this to go to a *given* camera pose)
     ``~/go_desired``   jump to the desired configuration (IK of ``desired_cMo``)
-    ``~/hold``         drop the current command (the arm stops at once)
+    ``~/hold``         drop the current command (the arm stops at once) and latch: every
+                       command is refused until ``~/release`` or ``~/reset``
+    ``~/release``      release the hold (the next command moves the arm again)
+    The three jumps are refused while the servo is enabled (``servo/enabled``): disable it
+    first (``/servo/enable false``), as the launcher's teach sequence does.
 
 Clock modes (parameter ``clock_mode``)
     ``realtime``  a wall timer at ``camera_rate`` advances the simulation one period per tick
@@ -64,8 +79,11 @@ jumps, re-publishing) is :class:`~sphere_servo.pipeline.arm_sim.ArmSimCore`'s.
 """
 from __future__ import annotations
 
+import functools
+
 from geometry_msgs.msg import PoseStamped, TwistStamped
 import numpy as np
+from rclpy.clock import Clock as WallClock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -74,15 +92,19 @@ from sphere_servo.pipeline.params import ArmSimParams
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, image_from_array,
                                           pose_from_se3, stamp_from_ns, twist_to_array)
 from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.guard import guarded, guarded_service
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.markers import marker_array, MARKERS_QOS, WORLD_FRAME
 from sphere_servo.ros.params import declare_all, install_set_callback, run
+from sphere_servo.ros.vectors import ENABLED_QOS
 from sphere_servo.sim.arm import CAMERA_FRAME
-from std_msgs.msg import Header
+from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 DEPTH, IMAGE_DEPTH = 100, 30  # publisher history (messages)
 HARDWARE_ID = 'ur5'
+PUBLISHERS_CHECK = 1.0  # s (wall) between two looks at the command topic's publishers
 
 
 class ArmSim(Node):
@@ -91,6 +113,7 @@ class ArmSim(Node):
     def __init__(self, **kwargs):
         super().__init__('arm_sim', **kwargs)
         self.core = core = ArmSimCore(declare_all(self, ArmSimParams))
+        self.log = ThrottledLog(self.get_logger())
         # runtime changes: the poses and start_mode (read by the go_* services); the others
         # are read-only
         install_set_callback(self, lambda: core.params, lambda p: setattr(core, 'params', p))
@@ -104,18 +127,25 @@ class ArmSim(Node):
         self.pub_markers = self.create_publisher(MarkerArray, '~/markers', MARKERS_QOS)
         if core.markers_error:
             self.get_logger().warn(core.markers_error)
-        self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd, 10)
+        self.sub_cmd = self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd,
+                                                10)
+        self.sub_enabled = self.create_subscription(Bool, 'servo/enabled', self._on_enabled,
+                                                    ENABLED_QOS)
         for name, jump in (('~/reset', core.reset), ('~/go_start', lambda: core.go('start')),
-                           ('~/go_desired', lambda: core.go('desired')),
-                           ('~/hold', core.hold)):
-            self.create_service(Trigger, name, self._service(jump))
+                           ('~/go_desired', lambda: core.go('desired'))):
+            self.create_service(Trigger, name, self._service(jump, arming=True))
+        for name, act in (('~/hold', core.hold), ('~/release', core.release)):
+            self.create_service(Trigger, name, self._service(act))
+        self.create_timer(PUBLISHERS_CHECK, self._check_publishers,
+                          clock=WallClock(clock_type=ClockType.STEADY_TIME))
+        self._cmd_publishers: tuple[str, ...] = ()
         self._last = []  # the last published messages, for lockstep re-publishing
         frame = core.frame()
         self.status = StatusPublisher(self, HARDWARE_ID, frame.status())
         if core.lockstep:
             self.create_timer(core.params.idle_republish_period, self._republish)
         else:
-            self.create_timer(core.dt, lambda: self._publish(core.on_tick()))
+            self.create_timer(core.dt, self._tick)
         self._publish(frame)
         p = core.params
         self.get_logger().info(
@@ -123,24 +153,56 @@ class ArmSim(Node):
             f'start q={np.round(core.arm.q, 3).tolist()}, URDF {core.arm.urdf_path}')
 
     # --- input ----------------------------------------------------------------------
-    def _on_cmd(self, msg: TwistStamped) -> None:
-        out = self.core.on_command(twist_to_array(msg.twist), msg.header.frame_id)
+    @guarded
+    def _on_cmd(self, msg: TwistStamped, info: dict) -> None:
+        out = self.core.on_command(twist_to_array(msg.twist), msg.header.frame_id,
+                                   info.get('publication_sequence_number'))
         if not out.valid:
-            self.get_logger().warn(f'refusing {out.reason}: not executed, arm stopped',
-                                   throttle_duration_sec=1.0)
+            self.log.warn(f'refusing {out.reason}: command refused, not executed, arm stopped')
         if out.frame is not None:
             self._publish(out.frame)
 
-    def _service(self, jump):
-        def callback(request, response):
-            out = jump()
-            response.success, response.message = out.success, out.message
-            if out.frame is not None:
-                self._publish(out.frame)
-                self.get_logger().info(out.message)
-            return response
-        return callback
+    @guarded
+    def _on_enabled(self, msg: Bool) -> None:
+        self.core.on_servo_enabled(msg.data)
 
+    @guarded
+    def _check_publishers(self) -> None:
+        names = tuple(sorted(f'{e.node_namespace.rstrip("/")}/{e.node_name}'
+                             for e in self.get_publishers_info_by_topic(self.sub_cmd.topic_name)))
+        if len(names) > 1 and names != self._cmd_publishers:
+            self.get_logger().warn(f'commands on {self.sub_cmd.topic_name} from '
+                                   f'{len(names)} publishers: {", ".join(names)}; one driver at '
+                                   'a time (a second one is refused while the first drives)')
+        self._cmd_publishers = names
+        self.core.on_command_publishers(names)
+
+    def _service(self, act, arming: bool = False):
+        return functools.partial(self._serve, act, arming)
+
+    @guarded_service
+    def _serve(self, act, arming: bool, request, response):
+        if arming and self.sub_enabled.get_publisher_count() == 0:
+            self.core.on_servo_enabled(False)  # no servo (it left, or never started)
+        out = act()
+        response.success, response.message = out.success, out.message
+        if out.frame is not None:
+            self._publish(out.frame)
+        if out.success:  # one severity per call site (rclpy's rule)
+            self.get_logger().info(out.message)
+        else:
+            self.get_logger().warn(out.message)
+        return response
+
+    def go_safe(self, *_) -> None:
+        """Stop the arm (the guard's answer to a callback that failed)."""
+        self.core.arm.stop()
+
+    @guarded
+    def _tick(self) -> None:
+        self._publish(self.core.on_tick())
+
+    @guarded
     def _republish(self) -> None:
         if self.core.republish_due:
             for pub, msg in self._last:
@@ -151,13 +213,12 @@ class ArmSim(Node):
         if f.step_error:
             self.get_logger().error(f'simulation step failed, holding still: {f.step_error}')
         if f.render_error:
-            self.get_logger().error(f'render failed: {f.render_error}',
-                                    throttle_duration_sec=1.0)
+            self.log.error(f'render failed: {f.render_error}')
         stamp = stamp_from_ns(f.stamp_ns)
-        self.pub_clock.publish(Clock(clock=stamp))
         hdr = Header(stamp=stamp, frame_id=CAMERA_FRAME)
         state = self.status.state_msg(f.status(), hdr)
-        self._last = [
+        self._last = [  # the clock too: a node that starts late gets it with the frame
+            (self.pub_clock, Clock(clock=stamp)),
             (self.pub_info, camera_info_from_intrinsics(self.core.camera, hdr)),
             (self.pub_joints, JointState(header=Header(stamp=stamp), name=list(f.joint_names),
                                          position=f.q.tolist(), velocity=f.qdot.tolist())),

@@ -14,8 +14,10 @@ Publishes (header = the image's header, so stamps flow through the pipeline)
                               found, not_found, rejected (counts), camera, reason
     ``/diagnostics``          the same status, on change and at 1 Hz
 
-A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size) or
-a missing ``camera_info`` is logged as a clear error and answered with an empty measurement
+A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size), a
+missing or refused ``camera_info`` (an impossible K, an unknown distortion model, a
+camera_info of another size than the image, both sizes logged, a non-zero distortion the
+detector does not apply) is logged as a clear error and answered with an empty measurement
 (target lost, so the servo stops); the node keeps running. The logic is
 :class:`~sphere_servo.pipeline.detector.DetectorCore`'s.
 
@@ -23,8 +25,6 @@ a missing ``camera_info`` is logged as a clear error and answered with an empty 
 the paper's calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``.
 """
 from __future__ import annotations
-
-import time
 
 import numpy as np
 from rclpy.node import Node
@@ -34,6 +34,8 @@ from sphere_servo.pipeline.detector import DetectorCore, DetectStatus
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.ros.conversions import image_from_array
 from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.guard import guarded
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, install_set_callback, run
 from sphere_servo.ros.vectors import measurement_msg
 from sphere_servo.vision.draw import draw_detection
@@ -54,28 +56,22 @@ class DetectorNode(Node):
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, 10)
-        self._last_error = ('', 0.0)
+        self.log = ThrottledLog(self.get_logger())
 
-    def _error(self, text: str) -> None:
-        """Log an error; a repeat of the same text is logged at most once a second."""
-        now = time.monotonic()
-        if text != self._last_error[0] or now - self._last_error[1] > 1.0:
-            self.get_logger().error(text)
-            self._last_error = (text, now)
-
+    @guarded
     def _on_info(self, msg: CameraInfo) -> None:
-        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
+                                       msg.distortion_model)
         if isinstance(cam, Refusal):
-            self.get_logger().error(f'bad camera_info, ignored: {cam.reason}',
-                                    throttle_duration_sec=2.0)
+            self.log.error(f'bad camera_info, ignored: {cam.reason}')
 
+    @guarded
     def _on_image(self, msg: Image) -> None:
         out = self.core.on_image(msg.height, msg.width, msg.step, msg.encoding, msg.data)
         if out.status is DetectStatus.REJECTED:
-            self._error(f'image rejected: {out.reason}')
+            self.log.error(f'image rejected: {out.reason}')
         elif out.status is DetectStatus.NOT_FOUND:
-            self.get_logger().warn(f'sphere not detected: {out.reason}',
-                                   throttle_duration_sec=2.0)
+            self.log.warn(f'sphere not detected: {out.reason}')
         self.pub.publish(measurement_msg(out.measurement, msg.header))
         if self.core.params.publish_overlay and out.detection is not None:
             img = out.image
@@ -84,6 +80,11 @@ class DetectorNode(Node):
             self.pub_overlay.publish(image_from_array(draw_detection(rgb, out.detection),
                                                       msg.header))
         self.status.update(self.core.status(), msg.header)
+
+    def go_safe(self, msg=None) -> None:
+        """Publish an empty measurement (target lost) for the image whose callback failed."""
+        if isinstance(msg, Image):
+            self.pub.publish(measurement_msg(None, msg.header))
 
 
 def main(args=None):

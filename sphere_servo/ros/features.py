@@ -3,7 +3,8 @@
 
 Subscribes
     ``detector/measurement``  sensor_msgs/JointState  (see :mod:`sphere_servo.ros.vectors`)
-    ``camera/camera_info``    sensor_msgs/CameraInfo  only for ``desired_source: image``
+    ``camera/camera_info``    sensor_msgs/CameraInfo  the camera's field (for the check of the
+                              measurements), and its K for ``desired_source: image``
 Publishes
     ``features/<set>``          sensor_msgs/JointState  for each set in ``sets`` (default
                                 s_n): ``position`` = s, header = the image's; empty = target
@@ -13,31 +14,36 @@ Publishes
                                 for ``desired_source`` pose or image); reliable,
                                 transient-local, depth 1: a late subscriber gets it
     ``~/state``                 diagnostic_msgs/DiagnosticArray  per measurement, its header:
-                                ``waiting | no desired | tracking | target lost``; values
-                                sets, desired_source, stamp, desired_stamp, reason
+                                ``waiting | no desired | tracking | target lost |
+                                refused``; values sets, desired_source, stamp,
+                                desired_stamp, reason
     ``/diagnostics``            the same status, on change and at 1 Hz
 Services
     ``~/teach``               std_srvs/Trigger  the latest measurement becomes the desired
                               one (teach by showing); the new desired is published on
                               ``features/<set>/desired`` before the reply
 
-Desired features (``desired_source``): ``teach`` (default), ``pose`` (``desired_cMo``) or
-``image`` (``desired_image``): see :mod:`sphere_servo.pipeline.features`, whose
-:class:`~sphere_servo.pipeline.features.FeaturesCore` holds the logic.
+Desired features (``desired_source``): ``teach`` (default; kept in ``desired_file`` if set,
+and published again by a restarted node), ``pose`` (``desired_cMo``) or ``image``
+(``desired_image``): see :mod:`sphere_servo.pipeline.features`, whose
+:class:`~sphere_servo.pipeline.features.FeaturesCore` holds the logic, the check of every
+measurement included: a physically impossible one is answered with empty features and an
+error log naming the quantity.
 """
 from __future__ import annotations
 
-from builtin_interfaces.msg import Time
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, JointState
 from sphere_servo.pipeline.common import Refusal, stamp_ns
 from sphere_servo.pipeline.features import DesiredSource, FeaturesCore
 from sphere_servo.pipeline.params import FeaturesParams
+from sphere_servo.ros.conversions import stamp_from_ns
 from sphere_servo.ros.diagnostics import StatusPublisher
+from sphere_servo.ros.guard import guarded, guarded_service
+from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
 from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
                                       measurement_from_msg)
-from sphere_servo.sim.arm import CAMERA_FRAME
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -56,15 +62,15 @@ class FeaturesNode(Node):
                                                          DESIRED_QOS)
                              for name in self.core.names}
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
+        self.log = ThrottledLog(self.get_logger())
         self.last_header: Header | None = None  # of the latest measurement
         self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
         self.create_service(Trigger, '~/teach', self._srv_teach)
-        if self.core.has_desired:  # from a pose: no image of the run
-            self._publish_desired(Header(stamp=Time(), frame_id=CAMERA_FRAME))
-        elif self.core.source is DesiredSource.IMAGE:
-            self._info_sub = self.create_subscription(CameraInfo, 'camera/camera_info',
-                                                      self._on_info_for_image, 10)
-        else:
+        self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
+        if self.core.has_desired:  # a pose (no image of the run: a zero stamp) or a kept one
+            self._publish_desired(Header(stamp=stamp_from_ns(self.core.desired_stamp_ns),
+                                         frame_id=self.core.desired_frame_id))
+        elif self.core.source is not DesiredSource.IMAGE:
             self.get_logger().info('waiting for ~/teach to set the desired features')
 
     def _publish_desired(self, hdr: Header) -> None:
@@ -72,13 +78,16 @@ class FeaturesNode(Node):
             self.pubs_desired[name].publish(features_msg(name, hdr, s_star))
         self.get_logger().info(self.core.describe_desired())
 
-    def _on_info_for_image(self, msg: CameraInfo) -> None:
-        out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+    @guarded
+    def _on_info(self, msg: CameraInfo) -> None:
+        out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
+                                       msg.distortion_model)
         if isinstance(out, Refusal):
-            self.get_logger().error(out.reason, throttle_duration_sec=5.0)
+            self.log.error(out.reason)
         elif out is not None:  # a file, not an image of the run: a zero stamp
-            self._publish_desired(Header(stamp=Time(), frame_id=msg.header.frame_id))
+            self._publish_desired(Header(stamp=stamp_from_ns(0), frame_id=msg.header.frame_id))
 
+    @guarded_service
     def _srv_teach(self, request, response):
         taught = self.core.teach()
         response.success, response.message = taught.success, taught.message
@@ -86,17 +95,27 @@ class FeaturesNode(Node):
             self._publish_desired(self.last_header)
         return response
 
+    @guarded
     def _on_measurement(self, msg: JointState) -> None:
         st = msg.header.stamp
         self.last_header = msg.header
-        out = self.core.on_measurement(stamp_ns(st.sec, st.nanosec), measurement_from_msg(msg))
+        out = self.core.on_measurement(stamp_ns(st.sec, st.nanosec), measurement_from_msg(msg),
+                                       msg.header.frame_id)
         if out is not None:
-            if out.lost:
-                self.get_logger().warn(f'target lost: {out.lost}', throttle_duration_sec=2.0)
+            if out.violation is not None:
+                self.log.error(f'measurement refused, features empty: {out.lost}')
+            elif out.lost:
+                self.log.warn(f'target lost: {out.lost}')
             for name, pub in self.pubs.items():
                 fs = out.values.get(name)
                 pub.publish(features_msg(name, msg.header, None if fs is None else fs.s))
         self.status.update(self.core.status(), msg.header)
+
+    def go_safe(self, msg=None) -> None:
+        """Publish empty features (target lost) for the measurement whose callback failed."""
+        if isinstance(msg, JointState) and self.core.has_desired:
+            for name, pub in self.pubs.items():
+                pub.publish(features_msg(name, msg.header))
 
 
 def main(args=None):

@@ -13,6 +13,7 @@ it into a ``RuntimeError`` and the node dies with exit code 1.
 """
 from __future__ import annotations
 
+from pathlib import Path
 import signal
 import sys
 
@@ -22,8 +23,11 @@ import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 import rclpy.executors
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
-from sphere_servo.pipeline.params import NodeParams, Param, ParameterError
+from sphere_servo.pipeline.config import ConfigError, read_yaml
+from sphere_servo.pipeline.params import (check_names, NodeParams, Param, ParameterError,
+                                          ROS_PARAMETERS)
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
@@ -32,8 +36,9 @@ def descriptor(p: Param) -> ParameterDescriptor:
     if p.choices:
         d.additional_constraints = f'one of {list(p.choices)}'
     if p.size:
-        d.additional_constraints = f'{p.size} finite numbers'
-    if p.bounds is not None:
+        d.additional_constraints = f'{p.size} finite numbers' + (
+            f', each within {list(p.bounds)}' if p.bounds is not None else '')
+    if p.bounds is not None and not p.size:
         lo, hi = p.bounds
         if isinstance(p.default, bool):
             pass
@@ -46,9 +51,17 @@ def descriptor(p: Param) -> ParameterDescriptor:
 
 
 def declare_all(node, cls: type[NodeParams]) -> NodeParams:
-    """Declare every parameter of ``cls`` on ``node``; return the validated parameters."""
-    return cls.from_mapping({name: node.declare_parameter(name, p.default, descriptor(p)).value
-                             for name, p in cls.table().items()})
+    """
+    Declare every parameter of ``cls`` on ``node``; return the validated parameters.
+
+    A parameter given that is not declared (:func:`check_overrides`) is refused first;
+    ``qos_overrides.*`` are declared by rclpy with the publishers, and checked by
+    :func:`run` once the node is built.
+    """
+    values = {name: node.declare_parameter(name, p.default, descriptor(p)).value
+              for name, p in cls.table().items()}
+    check_overrides(node, skip=('qos_overrides.',))
+    return cls.from_mapping(values)
 
 
 def install_set_callback(node, get, apply) -> None:
@@ -92,24 +105,72 @@ class StopFlag:
         return flag
 
 
+def params_files(args) -> list[str]:
+    """Return the ``--params-file`` paths of a command line, in its ``--ros-args`` parts."""
+    files, ros = [], False
+    args = list(args)
+    for i, a in enumerate(args):
+        if a == '--ros-args':
+            ros = True
+        elif a == '--':
+            ros = False
+        elif ros and a == '--params-file' and i + 1 < len(args):
+            files.append(args[i + 1])
+    return files
+
+
+def check_params_files(args) -> None:
+    """Refuse (ConfigError, one line) a ``--params-file`` that is missing or not a mapping."""
+    for f in params_files(args):
+        if not Path(f).is_file():
+            raise ConfigError(f'--params-file {f!r} does not exist or is not a file')
+        read_yaml(Path(f))
+
+
+def check_overrides(node, skip: tuple[str, ...] = ()) -> None:
+    """
+    Refuse parameters given to ``node`` that it does not declare (ParameterError).
+
+    rclpy keeps every override of the command line and the params files in the node's
+    ``_parameter_overrides`` (no public accessor) and ignores those never declared.
+    Names starting with a prefix in ``skip`` are not checked.
+    """
+    given = [n for n in node._parameter_overrides if not n.startswith(skip)]
+    if all(node.has_parameter(n) for n in given):
+        return
+    names = node.list_parameters([], 0).names
+    check_names(given, [n for n in names if n not in ROS_PARAMETERS],
+                [n for n in names if n in ROS_PARAMETERS])
+
+
+def _refuse(name: str, exc) -> None:
+    text = ' '.join(str(exc).split())  # one line: YAML and rcl errors span several
+    print(f'[{name}] refused to start: {text}', file=sys.stderr)
+    rclpy.try_shutdown()
+    sys.exit(2)
+
+
 def run(node_factory, name: str, args=None) -> None:
     """
     Run a node until Ctrl-C, SIGTERM or an external shutdown.
 
     Then ``on_shutdown()`` (if the node has one: the servo's last word is a zero twist),
     ``destroy_node()`` and ``rclpy.try_shutdown()``. rclpy's own signal handler is disabled
-    so the context is still valid in ``on_shutdown()``. A refused parameter ends the
-    process with a one-line message and exit code 2.
+    so the context is still valid in ``on_shutdown()``. A bad params file, a refused or an
+    undeclared parameter end the process with a one-line message and exit code 2.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        check_params_files(sys.argv if args is None else args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except (ConfigError, _rclpy.RCLError) as exc:
+        _refuse(name, str(exc).split(', at /')[0])  # rcl appends its source locations
     stop = StopFlag.install()
     try:
         node = node_factory()
+        check_overrides(node)
     except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
-            ValueError, TypeError, FileNotFoundError, ImportError) as exc:
-        print(f'[{name}] refused to start: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        sys.exit(2)
+            ValueError, TypeError, FileNotFoundError, ImportError, ConfigError) as exc:
+        _refuse(name, exc)
     try:
         executor = rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)

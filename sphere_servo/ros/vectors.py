@@ -26,6 +26,9 @@ from std_msgs.msg import Header
 # ``--qos-durability transient_local`` to see it)
 DESIRED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: the servo's ``~/enabled`` (std_msgs/Bool), latched the same way: a late subscriber
+#: (arm_sim, which refuses its jumps while the servo is enabled) gets the current mode
+ENABLED_QOS = DESIRED_QOS
 
 
 def desired_topic(name: str) -> str:
