@@ -343,8 +343,9 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
     """
     Kill ``detector`` mid-run: the arm stops; restart it: the loop converges.
 
-    The servo sends zero velocity within its timeout and the arm stops; after the restart
-    the loop resumes and converges.
+    In lockstep the sim steps only on a twist, and the stale servo sends none (a watchdog
+    twist would step the sim): after the kill no non-zero twist comes and sim time stands
+    still, so the arm is where it was; after the restart the loop resumes and converges.
     """
     import time
     cfg = scenario('special_sphere')
@@ -367,20 +368,21 @@ def test_killed_detector_stops_the_arm_and_a_restart_resumes(ros_env, tmp_path):
         t_kill = time.monotonic()
         sup.spin(timeout + 1.0)
         assert sup.state is ServoState.STALE, sup.state
+        # under load Fast DDS delivers the small topics up to seconds late: let them drain
+        sup.spin(2.0)
+        n_twists = len(twists)
         late = [m for t, m in twists if t > t_kill + timeout + 0.2]
-        assert late and all(_norm(m) == 0 for m in late)
-        # at rest: the newest joint states (by sim stamp; under load Fast DDS delivers the
-        # small topics up to seconds late, so arrival time says little) have zero
-        # velocities and one position: the stale servo's zeros step the lockstep sim
+        assert all(_norm(m) == 0 for m in late), late
 
-        def newest(k=3):
-            return sorted(joints, key=lambda tm: _stamp_s(tm[1]))[-k:]
-        sup.wait(lambda: all(np.allclose(m.velocity, 0.0) for _, m in newest()), 10.0)
-        rest = [m for _, m in newest()]
-        seen = [(round(_stamp_s(m), 4), np.round(m.position, 6).tolist(), list(m.velocity))
-                for _, m in sorted(joints, key=lambda tm: _stamp_s(tm[1]))[-8:]]
-        assert all(np.allclose(m.velocity, 0.0) for m in rest), seen
-        assert len({tuple(np.round(m.position, 12)) for m in rest}) == 1, seen
+        def newest():
+            return max(joints, key=lambda tm: _stamp_s(tm[1]))[1]
+        before = newest()
+        sup.spin(2.0)
+        after = newest()
+        # nothing steps the sim: no twist at all, and the newest joint state is the same one
+        assert len(twists) == n_twists
+        assert _stamp_s(after) == _stamp_s(before)
+        assert np.allclose(after.position, before.position, atol=0.0)
         run.restart('detector')
         out.flush()
         assert sup.wait(sup.converged, 120.0, lambda: not run.dead()), (

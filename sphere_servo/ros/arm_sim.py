@@ -64,12 +64,12 @@ Clock modes (parameter ``clock_mode``)
                   under the last command, then renders and publishes.
     ``lockstep``  each received command advances the simulation exactly one camera period,
                   then renders and publishes exactly one image (a refused command advances
-                  the clock with the arm held still, so a loop never stalls). The first image
-                  (and the one after a reset/go_* jump) is published at once and *re-published*
-                  unchanged (same stamp) every ``idle_republish_period`` wall seconds until
-                  the next command arrives, so a subscriber that connects late still gets
-                  it; all topics are volatile and reliable, with a history of 30 images
-                  and 100 of the other messages.
+                  the clock with the arm held still, so a loop never stalls). Each image is
+                  published at once and *re-published* unchanged (same stamp) when
+                  ``idle_republish_period`` wall seconds pass with no command after it, so
+                  a subscriber that connects late (or restarts) still gets it; all topics
+                  are volatile and reliable, with a history of 30 images and 100 of the
+                  other messages.
 
 Poses in parameters are 6 numbers ``[x, y, z, roll, pitch, yaw]`` (metres, radians,
 ``R = Rz(yaw) Ry(pitch) Rx(roll)``). ``desired_cMo`` / ``start_cMo`` give the target in the
@@ -80,6 +80,7 @@ jumps, re-publishing) is :class:`~sphere_servo.pipeline.arm_sim.ArmSimCore`'s.
 from __future__ import annotations
 
 import functools
+import time
 
 from geometry_msgs.msg import PoseStamped, TwistStamped
 import numpy as np
@@ -140,6 +141,7 @@ class ArmSim(Node):
                           clock=WallClock(clock_type=ClockType.STEADY_TIME))
         self._cmd_publishers: tuple[str, ...] = ()
         self._last = []  # the last published messages, for lockstep re-publishing
+        self._last_wall = time.monotonic()  # when they were sent
         frame = core.frame()
         self.status = StatusPublisher(self, HARDWARE_ID, frame.status())
         if core.lockstep:
@@ -204,9 +206,14 @@ class ArmSim(Node):
 
     @guarded
     def _republish(self) -> None:
-        if self.core.republish_due:
-            for pub, msg in self._last:
-                pub.publish(msg)
+        idle = time.monotonic() - self._last_wall
+        if self.core.republish_due and idle >= self.core.params.idle_republish_period:
+            self._send_last()
+
+    def _send_last(self) -> None:
+        self._last_wall = time.monotonic()
+        for pub, msg in self._last:
+            pub.publish(msg)
 
     # --- output ---------------------------------------------------------------------
     def _publish(self, f: SimFrame) -> None:
@@ -226,8 +233,7 @@ class ArmSim(Node):
                                                       frame_id=self.core.params.target_frame),
                                         pose=pose_from_se3(f.oMc))),
             (self.status.pub_state, state), (self.pub_image, image_from_array(f.image, hdr))]
-        for pub, msg in self._last:
-            pub.publish(msg)
+        self._send_last()
         self.status.note(f.status())
         markers = self.core.markers(f)
         if markers is not None:
