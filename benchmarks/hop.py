@@ -69,7 +69,7 @@ def _seconds(stamp) -> float:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('role', choices=('pub', 'sub', 'both'))
     ap.add_argument('--topic', default='hop/image_raw')
     ap.add_argument('--rate', type=float, default=30.0, help='images per second')

@@ -56,7 +56,7 @@ _CUT = {'ns': None}  # wall time of the interrupt (set by the signal handler)
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog='record', description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='record', description=__doc__.strip().split('\n\n')[0])
     p.add_argument('-o', '--output', default=None,
                    help='bag directory to create (must not exist); '
                         'default rosbag2_YYYY_MM_DD-HH_MM_SS')

@@ -185,7 +185,7 @@ def _scan_topics(sc: mcap.Scan, name: str) -> tuple[list[TopicMeta], FileMeta]:
 
 def main(args=None) -> int:
     argv = sys.argv[1:] if args is None else list(args)[1:]
-    p = argparse.ArgumentParser(prog='reindex', description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='reindex', description=__doc__.strip().split('\n\n')[0])
     p.add_argument('bag', help='bag directory (or one of its storage files)')
     opts = p.parse_args(argv)
     try:

@@ -30,7 +30,7 @@ from sphere_servo.bag.metadata import INFINITE
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog='replay', description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='replay', description=__doc__.strip().split('\n\n')[0])
     p.add_argument('bag', help='rosbag2 directory, or a bare .mcap / .db3 file')
     p.add_argument('--topics', nargs='+', default=None, metavar='TOPIC',
                    help='topics to replay (default: all)')

@@ -147,7 +147,7 @@ def watch_files(bag: Path, out: Path, scenario: str) -> list[Path]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--out', default='runs', help='parent folder of the run folder')
     ap.add_argument('--config', '--scenario', dest='scenario', default='special_sphere',
                     help='launcher scenario (config/scenarios/<name>.yaml)')

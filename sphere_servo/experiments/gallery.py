@@ -64,7 +64,7 @@ def scenes():
 
 
 def main(argv=None) -> list[Path]:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
