@@ -1,9 +1,12 @@
 """
 The detector's logic without ROS: camera_info → the camera, an image buffer → a detection.
 
-:class:`DetectorCore` holds the camera of the latest usable ``camera_info`` (its true
-intrinsics with ``intrinsics_error`` applied: relative errors (px, py, u0, v0), the paper's
-calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``) and runs the vision layer's
+:class:`DetectorCore` holds the camera of the latest usable ``camera_info`` — its model
+(``distortion_model`` plumb_bob, equidistant or unified, built by
+:func:`~sphere_servo.core.camera_models.camera_from_camera_info_fields`; the detector
+applies each model's distortion) with ``intrinsics_error`` applied to its intrinsics:
+relative errors (px, py, u0, v0), the paper's calibration-error experiment is
+``[0.35, 0.30, -0.25, 0.27]`` — and runs the vision layer's
 :class:`~sphere_servo.vision.detector.Detector` on each image. A bad image (unsupported
 encoding, ``step``/``data`` lengths that disagree, zero size) or a missing camera is
 *rejected*: the result says why, and its measurement is empty (target lost, so the servo
@@ -15,7 +18,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 
-from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.camera_models import camera_from_camera_info_fields
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.targets import make_target
 from sphere_servo.core.types import Image
 from sphere_servo.pipeline.common import Level, NodeStatus, Refusal
@@ -26,10 +30,14 @@ from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
 
 def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[float] | None,
                      intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.0),
-                     ) -> CameraIntrinsics | Refusal:
-    """Return the camera of camera_info fields with ``intrinsics_error`` applied, or why not."""
+                     distortion_model: str = 'plumb_bob') -> CentralCamera | Refusal:
+    """
+    Return the camera of camera_info fields with ``intrinsics_error`` applied, or why not.
+
+    The model is :func:`~sphere_servo.core.camera_models.camera_from_camera_info_fields`'s.
+    """
     try:
-        cam = CameraIntrinsics.from_camera_info_fields(width, height, k, d)
+        cam = camera_from_camera_info_fields(width, height, k, d, distortion_model)
         ex, ey, eu, ev = intrinsics_error
         return cam.with_error(px=ex, py=ey, u0=eu, v0=ev)
     except ValueError as exc:
@@ -76,7 +84,7 @@ class DetectorCore:
     def __init__(self, params: DetectorParams):
         self.params = params
         self.detector = Detector.for_target(make_target(params.target_kind))
-        self.camera: CameraIntrinsics | None = None
+        self.camera: CentralCamera | None = None
         self.last: DetectorOutput | None = None
         self.counts = {status: 0 for status in DetectStatus if status is not DetectStatus.WAITING}
 
@@ -97,10 +105,12 @@ class DetectorCore:
         return NodeStatus(state, LEVELS[state], values)
 
     def on_camera_info(self, width: int, height: int, k: Sequence[float],
-                       d: Sequence[float] | None) -> CameraIntrinsics | Refusal:
+                       d: Sequence[float] | None,
+                       distortion_model: str = 'plumb_bob') -> CentralCamera | Refusal:
         """Take the camera of a camera_info; a refused one leaves no camera."""
-        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error)
-        self.camera = cam if isinstance(cam, CameraIntrinsics) else None
+        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error,
+                               distortion_model)
+        self.camera = None if isinstance(cam, Refusal) else cam
         return cam
 
     def on_image(self, height: int, width: int, step: int, encoding: str,
@@ -111,7 +121,7 @@ class DetectorCore:
         return out
 
     def detect(self, height: int, width: int, step: int, encoding: str, data,
-               camera: CameraIntrinsics | None) -> DetectorOutput:
+               camera: CentralCamera | None) -> DetectorOutput:
         """Detect in one image buffer with ``camera`` (None: rejected, no camera yet)."""
         try:
             img = image_from_buffer(height, width, step, encoding, data)

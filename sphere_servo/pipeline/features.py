@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.features import FeatureSet, make_feature_set
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import Observation, observe
@@ -83,7 +83,7 @@ def features_target(p: FeaturesParams) -> Target:
     return make_target(p.target_kind, radius=p.target_radius)
 
 
-def observation_from_image(bgr: np.ndarray, target: Target, camera: CameraIntrinsics,
+def observation_from_image(bgr: np.ndarray, target: Target, camera: CentralCamera,
                            ) -> Observation:
     """Detect ``target`` in a bgr8 image; raise ValueError or GeometryError if unusable."""
     return Detector.for_target(target).detect(bgr, 'bgr8', camera).to_observation(target.kind)
@@ -159,7 +159,8 @@ class FeaturesCore:
             f': s*_n,t = {s_n.desired[:3].round(4).tolist()}' if s_n else '')
 
     def on_camera_info(self, width: int, height: int, k: Sequence[float],
-                       d: Sequence[float] | None) -> Observation | Refusal | None:
+                       d: Sequence[float] | None,
+                       distortion_model: str = 'plumb_bob') -> Observation | Refusal | None:
         """
         Detect the desired image with this camera (``desired_source: image``).
 
@@ -168,7 +169,8 @@ class FeaturesCore:
         """
         if self.source is not DesiredSource.IMAGE or self.sets:
             return None
-        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error)
+        cam = camera_from_info(width, height, k, d, self.params.intrinsics_error,
+                               distortion_model)
         try:
             if isinstance(cam, Refusal):
                 raise ValueError(cam.reason)

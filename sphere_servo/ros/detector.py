@@ -64,7 +64,8 @@ class DetectorNode(Node):
             self._last_error = (text, now)
 
     def _on_info(self, msg: CameraInfo) -> None:
-        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+        cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
+                                       msg.distortion_model)
         if isinstance(cam, Refusal):
             self.get_logger().error(f'bad camera_info, ignored: {cam.reason}',
                                     throttle_duration_sec=2.0)

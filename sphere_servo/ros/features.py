@@ -73,7 +73,8 @@ class FeaturesNode(Node):
         self.get_logger().info(self.core.describe_desired())
 
     def _on_info_for_image(self, msg: CameraInfo) -> None:
-        out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d)
+        out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
+                                       msg.distortion_model)
         if isinstance(out, Refusal):
             self.get_logger().error(out.reason, throttle_duration_sec=5.0)
         elif out is not None:  # a file, not an image of the run: a zero stamp
