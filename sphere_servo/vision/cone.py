@@ -136,7 +136,11 @@ def fit_cone(lift, E: np.ndarray, tol_px: float = MIN_OUTLIER_PX) -> ConeFit | N
     return ConeFit(sphere, fit.theta, keep, rays.T, scale, math.sqrt(float(rk @ rk) / nk))
 
 
-def contour_px(camera, b: np.ndarray, theta: float, n: int = 90) -> np.ndarray:
+#: rays sampled on a detection's contour (:func:`contour_px`)
+CONTOUR_SAMPLES = 90
+
+
+def contour_px(camera, b: np.ndarray, theta: float, n: int = CONTOUR_SAMPLES) -> np.ndarray:
     """(m, 2) pixels of the cone's silhouette through ``camera`` (its rays in the field)."""
     q = circle_rays(b, theta, n)
     q = q[camera.valid(q)]
