@@ -12,7 +12,11 @@ pixel partly covered by an object mixes the object's sub-samples with its backgr
 
 Conventions: camera optical frame (z forward, x right, y down); pixel ``(u, v)`` is the
 square ``[u − ½, u + ½) × [v − ½, v + ½)`` with its centre at integer coordinates (the
-OpenCV and ROS CameraInfo convention), ray ``d = ((u − cx)/fx, (v − cy)/fy, 1)``.
+OpenCV and ROS CameraInfo convention), ray ``d = ((u − cx)/fx, (v − cy)/fy, 1)`` for the
+pinhole :class:`Camera`; the wide cameras (:class:`Fisheye`, Kannala–Brandt as OpenCV's
+``cv2.fisheye`` extended beyond 90°, and :class:`Unified`, Mei's model) invert their own
+projection formulas here, sub-sample by sub-sample, with no code of ``sphere_servo``. Rays
+that no pixel of the camera sees (outside its image circle) are black.
 
 Scene objects are given in the camera frame:
 
@@ -39,12 +43,114 @@ class Camera:
     cy: float
     width: int
     height: int
+    wide = False
 
     def project(self, P: np.ndarray) -> np.ndarray:
         """(N, 2) pixels of (N, 3) camera-frame points (z > 0)."""
         P = np.atleast_2d(P)
         return np.column_stack([self.fx * P[:, 0] / P[:, 2] + self.cx,
                                 self.fy * P[:, 1] / P[:, 2] + self.cy])
+
+    def rays(self, u: np.ndarray, v: np.ndarray):
+        """Return the directions ``(x, y, z)`` (float32) of the pixels (u, v)."""
+        return (((u - self.cx) / self.fx).astype(np.float32),
+                ((v - self.cy) / self.fy).astype(np.float32), np.float32(1.0))
+
+
+@dataclass(frozen=True)
+class Fisheye:
+    """
+    Equidistant fisheye: ``θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)``, ``θ = ∠(P, z)``.
+
+    Pixel ``(fx θ_d cos φ + cx, fy θ_d sin φ + cy)`` (φ the azimuth); rays up to ``θ < π``
+    where θ_d increases.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    k: tuple = (0.0, 0.0, 0.0, 0.0)
+    wide = True
+
+    def _td(self, t):
+        k1, k2, k3, k4 = self.k
+        t2 = t * t
+        return t * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+
+    def project(self, P: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels of (N, 3) camera-frame points."""
+        P = np.atleast_2d(np.asarray(P, float))
+        rho = np.hypot(P[:, 0], P[:, 1])
+        td = self._td(np.arctan2(rho, P[:, 2]))
+        s = np.where(rho > 0, td / np.maximum(rho, 1e-300), 0.0)
+        return np.column_stack([self.fx * s * P[:, 0] + self.cx, self.fy * s * P[:, 1] + self.cy])
+
+    def rays(self, u: np.ndarray, v: np.ndarray):
+        """Return the unit directions ``(x, y, z)`` (float32) of pixels (u, v), NaN: none."""
+        a = (np.asarray(u, float) - self.cx) / self.fx
+        b = (np.asarray(v, float) - self.cy) / self.fy
+        rd = np.hypot(a, b)
+        t = np.minimum(rd, 3.0)
+        for _ in range(40):                  # Newton on θ_d(θ) = r_d, from θ = r_d
+            h = 1e-6
+            f = self._td(t) - rd
+            df = (self._td(t + h) - self._td(t - h)) / (2 * h)
+            t = np.clip(t - f / np.where(np.abs(df) > 1e-9, df, 1e-9), 0.0, math.pi)
+        ok = (np.abs(self._td(t) - rd) < 1e-9) & (t < math.pi)
+        s = np.where(rd > 0, np.sin(t) / np.maximum(rd, 1e-300), 1.0)
+        x, y, z = a * s, b * s, np.cos(t)
+        for c in (x, y, z):
+            c[~ok] = np.nan
+        return x.astype(np.float32), y.astype(np.float32), z.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Unified:
+    """
+    Mei's unified model: ``q = P/‖P‖``, ``m = (q_x, q_y)/(q_z + ξ)``, rad-tan (k1 k2 p1 p2).
+
+    Pixel ``(fx m_dx + cx, fy m_dy + cy)``; rays with ``q_z > −ξ`` (ξ ≤ 1).
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    xi: float = 0.9
+    d: tuple = (0.0, 0.0, 0.0, 0.0)
+    wide = True
+
+    def _distort(self, x, y):
+        k1, k2, p1, p2 = self.d
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2 * r2
+        return (x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+    def project(self, P: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels of (N, 3) camera-frame points."""
+        P = np.atleast_2d(np.asarray(P, float))
+        q = P / np.linalg.norm(P, axis=1)[:, None]
+        x, y = self._distort(q[:, 0] / (q[:, 2] + self.xi), q[:, 1] / (q[:, 2] + self.xi))
+        return np.column_stack([self.fx * x + self.cx, self.fy * y + self.cy])
+
+    def rays(self, u: np.ndarray, v: np.ndarray):
+        """Return the unit directions ``(x, y, z)`` (float32) of the pixels (u, v)."""
+        xd = (np.asarray(u, float) - self.cx) / self.fx
+        yd = (np.asarray(v, float) - self.cy) / self.fy
+        x, y = xd.copy(), yd.copy()
+        for _ in range(30):                  # fixed point, as OpenCV's undistortPoints
+            fx, fy = self._distort(x, y)
+            x, y = x - (fx - xd), y - (fy - yd)
+        r2 = x * x + y * y
+        lam = (self.xi + np.sqrt(1 + (1 - self.xi ** 2) * r2)) / (1 + r2)
+        return ((lam * x).astype(np.float32), (lam * y).astype(np.float32),
+                (lam - self.xi).astype(np.float32))
 
 
 @dataclass(frozen=True)
@@ -179,7 +285,7 @@ def _ball_box(cam: Camera, b: Ball, margin: int = 2):
     """Pixel box (u0, u1, v0, v1) of a ball's image, from its sampled occluding circle."""
     cO = np.asarray(b.centre, float)
     d = np.linalg.norm(cO)
-    if d <= b.radius or cO[2] <= b.radius:
+    if d <= b.radius or (cO[2] <= b.radius and not cam.wide):
         return 0, cam.width, 0, cam.height
     n = cO / d
     c = cO * (1 - (b.radius / d) ** 2)
@@ -218,9 +324,8 @@ def _clip_box(cam, uv, margin):
 def _shade_rays(cam: Camera, objects, light: Light, u, v, background):
     """Colour (…, 3) of the rays through the sub-pixel points (u, v)."""
     f32 = np.float32
-    x = ((u - cam.cx) / cam.fx).astype(f32)
-    y = ((v - cam.cy) / cam.fy).astype(f32)
-    dd = x * x + y * y + f32(1.0)
+    x, y, z = cam.rays(u, v)
+    dd = x * x + y * y + z * z
     depth = np.full(u.shape, np.inf, f32)
     col = np.empty(u.shape + (3,), f32)
     L = np.asarray(light.direction, float)
@@ -228,18 +333,19 @@ def _shade_rays(cam: Camera, objects, light: Light, u, v, background):
     for ob in objects:
         if isinstance(ob, Ball):
             cO = np.asarray(ob.centre, float)
-            dO = x * f32(cO[0]) + y * f32(cO[1]) + f32(cO[2])
+            dO = x * f32(cO[0]) + y * f32(cO[1]) + z * f32(cO[2])
             disc = dO * dO - dd * f32(cO @ cO - ob.radius ** 2)
             t = (dO - np.sqrt(np.maximum(disc, 0.0))) / dd
             hit = (disc >= 0) & (t > 0) & (t < depth)
             if not hit.any():
                 continue
             th, xh, yh = t[hit], x[hit], y[hit]
+            zh = z[hit] if np.ndim(z) else z
             # unit normal n = (t d − O)/r; unit view direction −t d/‖t d‖
             ir = f32(1.0 / ob.radius)
             nx = (th * xh - f32(cO[0])) * ir
             ny = (th * yh - f32(cO[1])) * ir
-            nz = (th - f32(cO[2])) * ir
+            nz = (th * zh - f32(cO[2])) * ir
             alb = np.empty(th.shape + (3,), f32)
             alb[:] = np.asarray(ob.colour, f32)
             for cap in ob.caps:
@@ -248,8 +354,8 @@ def _shade_rays(cam: Camera, objects, light: Light, u, v, background):
                 alb[on] = np.asarray(cap.colour, f32)
             ndl = nx * f32(L[0]) + ny * f32(L[1]) + nz * f32(L[2])
             wrap = np.maximum((ndl + f32(light.wrap)) / f32(1.0 + light.wrap), 0.0) ** 1.5
-            iv = -1.0 / np.sqrt(xh * xh + yh * yh + 1.0)
-            hx, hy, hz = xh * iv + f32(L[0]), yh * iv + f32(L[1]), iv + f32(L[2])
+            iv = -1.0 / np.sqrt(xh * xh + yh * yh + zh * zh)
+            hx, hy, hz = xh * iv + f32(L[0]), yh * iv + f32(L[1]), zh * iv + f32(L[2])
             ndh = (nx * hx + ny * hy + nz * hz) / np.sqrt(hx * hx + hy * hy + hz * hz)
             spec = f32(255.0 * light.specular) * np.maximum(ndh, 0.0) ** f32(light.shininess)
             spec[ndl <= 0] = 0.0
@@ -259,10 +365,10 @@ def _shade_rays(cam: Camera, objects, light: Light, u, v, background):
         elif isinstance(ob, Disc):
             nrm = np.asarray(ob.normal, float) / np.linalg.norm(ob.normal)
             C = np.asarray(ob.centre, float)
-            den = x * f32(nrm[0]) + y * f32(nrm[1]) + f32(nrm[2])
+            den = x * f32(nrm[0]) + y * f32(nrm[1]) + z * f32(nrm[2])
             with np.errstate(divide='ignore', invalid='ignore'):
                 t = f32(C @ nrm) / den
-            Px, Py, Pz = t * x - f32(C[0]), t * y - f32(C[1]), t - f32(C[2])
+            Px, Py, Pz = t * x - f32(C[0]), t * y - f32(C[1]), t * z - f32(C[2])
             hit = (t > 0) & (t < depth) & (Px * Px + Py * Py + Pz * Pz <= f32(ob.radius ** 2))
             col[hit] = np.asarray(ob.colour, f32)
             depth[hit] = t[hit]
@@ -270,6 +376,8 @@ def _shade_rays(cam: Camera, objects, light: Light, u, v, background):
     if miss.any():
         # the sub-samples that miss every object see their pixel's box-filtered background
         col[miss] = background[np.rint(v[miss]).astype(int), np.rint(u[miss]).astype(int)]
+    if np.ndim(x):
+        col[np.isnan(x)] = 0.0                # no ray: outside the image circle
     return col
 
 
@@ -334,4 +442,7 @@ def _background_image(cam: Camera, background, ss: int) -> np.ndarray:
         v1 = min(cam.height, v0 + step)
         U, V = _sub_grid(0, cam.width, v0, v1, ss)
         out[v0:v1] = _box_mean(background(U, V), ss)
+    if cam.wide:                               # no ray outside the image circle: black
+        v, u = np.mgrid[0:cam.height, 0:cam.width]
+        out[np.isnan(cam.rays(u.astype(float), v.astype(float))[0])] = 0.0
     return out

@@ -84,11 +84,19 @@ def random_poses(cam: Camera, target, n: int, seed: int, max_incidence_deg: floa
         t = ray / np.linalg.norm(ray) * d
         if not in_view(cam, t, target.radius):
             continue
-        R = random_rotation(rng)
-        if all(incidence(R, t, oP) < math.radians(max_incidence_deg)
-               for oP in (target.oP1, target.oP2)):
+        R = _facing_rotation(rng, target, t, max_incidence_deg)
+        if R is not None:
             out.append((R, t))
     return out
+
+
+def _facing_rotation(rng, target, t: np.ndarray, max_incidence_deg: float):
+    """Draw a rotation; return it if both marks face the camera within the angle, else None."""
+    R = random_rotation(rng)
+    if all(incidence(R, t, oP) < math.radians(max_incidence_deg)
+           for oP in (target.oP1, target.oP2)):
+        return R
+    return None
 
 
 def target_ball(target, R: np.ndarray, t: np.ndarray, cap_angle: float | None = None) -> Ball:
@@ -190,3 +198,77 @@ def scenes(cam: Camera, target, n: int, seed: int, *, distractor_kind: str | Non
             if extra is not None:
                 objects.append(extra)
         yield render(cam, objects, bg, random_light(rng), rng=rng), R, t, extra
+
+
+# --- wide cameras: poses over the whole field ------------------------------------------------
+def ring_points(cO: np.ndarray, r: float, n: int = 180) -> np.ndarray:
+    """(n, 3) points of a ball's occluding circle seen from the camera centre."""
+    d = np.linalg.norm(cO)
+    nrm = cO / d
+    c = cO * (1 - (r / d) ** 2)
+    rho = r * math.sqrt(1 - (r / d) ** 2)
+    e1 = np.cross(nrm, [0.3, -0.5, 0.8])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nrm, e1)
+    t = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    return c + rho * (np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2)
+
+
+def wide_in_view(cam, cO: np.ndarray, r: float, margin: float = 3.0) -> bool:
+    """Tell whether a ball's occluding circle projects inside a wide camera's image."""
+    uv = cam.project(ring_points(cO, r))
+    if not np.all(np.isfinite(uv)):
+        return False
+    # a ray the camera images maps back to itself (not beyond its field or a fold)
+    x, y, z = cam.rays(uv[:, 0], uv[:, 1])
+    P = ring_points(cO, r)
+    back = np.column_stack([x, y, z]).astype(float)
+    cosang = np.einsum('ij,ij->i', back, P) / np.linalg.norm(P, axis=1)
+    return bool(np.all(cosang > 1 - 1e-6) and uv[:, 0].min() >= margin
+                and uv[:, 0].max() <= cam.width - 1 - margin and uv[:, 1].min() >= margin
+                and uv[:, 1].max() <= cam.height - 1 - margin)
+
+
+def wide_poses(cam, target, n: int, seed: int, off_deg=(0.0, 95.0), dist=(0.2, 0.5),
+               max_incidence_deg: float = 70.0):
+    """
+    Draw ``n`` seeded poses (R, t) for a wide camera: the centre ``off_deg`` from the axis.
+
+    The direction of O uniform in azimuth and in the angle from the optical axis within
+    ``off_deg`` (deg), the distance in ``dist`` (m), the sphere fully in the image (3 px
+    margin), both marks within ``max_incidence_deg`` of the line of sight.
+    """
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        off = math.radians(rng.uniform(*off_deg))
+        az = rng.uniform(0, 2 * math.pi)
+        b = np.array([math.sin(off) * math.cos(az), math.sin(off) * math.sin(az), math.cos(off)])
+        t = b * rng.uniform(*dist)
+        if not wide_in_view(cam, t, target.radius):
+            continue
+        R = _facing_rotation(rng, target, t, max_incidence_deg)
+        if R is not None:
+            out.append((R, t))
+    return out
+
+
+def wide_scenes(cam, target, n: int, seed: int, bank: int = 16, **kw):
+    """
+    Yield ``n`` seeded frames ``(image, R, t)`` of the special sphere seen by a wide camera.
+
+    Poses of :func:`wide_poses` (``kw``), a textured background per frame (one of ``bank``
+    per contrast, :func:`textured_background`), a light within ~50° of the line of sight to
+    the sphere (a light near the camera), sensor noise.
+    """
+    rng = np.random.default_rng(seed + 7919)
+    for R, t in wide_poses(cam, target, n, seed, **kw):
+        b = t / np.linalg.norm(t)
+        e1 = np.cross(b, [0.3, -0.5, 0.8])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(b, e1)
+        d = -b + rng.uniform(-0.6, 0.6) * e1 + rng.uniform(-0.6, 0.6) * e2
+        light = Light(direction=d / np.linalg.norm(d))
+        img = render(cam, [target_ball(target, R, t)], textured_background(rng, bank=bank),
+                     light, rng=rng)
+        yield img, R, t

@@ -37,8 +37,9 @@ def _flat(d: dict, prefix: str = '') -> dict:
 
 
 def test_the_shipped_scenarios_and_params_files_exist():
-    assert [p.stem for p in SCENARIOS] == ['balloon', 'calibration_error', 'cc_target',
-                                           'special_sphere', 'wrong_radius']
+    assert [p.stem for p in SCENARIOS] == ['balloon', 'calibration_error', 'catadioptric',
+                                           'cc_target', 'fisheye', 'special_sphere',
+                                           'wrong_radius']
     assert not list((REPO / 'config').glob('*.yaml')), 'configs live in params/, scenarios/'
     for path in SCENARIOS:
         sc = load_scenario(path)

@@ -206,8 +206,8 @@ def _info(**over):
 @pytest.mark.parametrize('over, needles', [
     ({'width': 320, 'height': 240,
       'k': [300.0, 0, 160.0, 0, 300.0, 120.0, 0, 0, 1]}, ['320x240', '640x480']),
-    ({'d': [0.1, 0.0, 0.0, 0.0, 0.0]}, ['plumb_bob distortion d', '0.1']),
-    (FisheyeCamera(px=300, py=300).to_camera_info_fields(), ['camera model', 'Fisheye']),
+    (FisheyeCamera(px=300, py=300, u0=640.0, v0=360.0, width=1280, height=720)
+     .to_camera_info_fields(), ['1280x720', '640x480']),  # every model: the size is checked
 ])
 def test_a_camera_the_detector_cannot_use_rejects_the_image(over, needles):
     c = DetectorCore(DetectorParams.from_mapping({}))
@@ -220,13 +220,13 @@ def test_a_camera_the_detector_cannot_use_rejects_the_image(over, needles):
 
 
 def test_the_distortion_refusal_is_lifted_in_one_place(monkeypatch):
-    """DISTORTION_APPLIED is the one switch: a model in it is measured (issue 18 lifts it)."""
+    """DISTORTION_APPLIED is the one switch: a model not in it is refused, never ignored."""
     c = DetectorCore(DetectorParams.from_mapping({}))
     c.on_camera_info(*_info(d=[1e-4, 0.0, 0.0, 0.0, 0.0]))
-    assert c.on_image(**_image()).status is DetectStatus.REJECTED
-    monkeypatch.setattr(detector_module, 'DISTORTION_APPLIED',
-                        frozenset({CameraIntrinsics}))
-    assert c.on_image(**_image()).status is DetectStatus.FOUND
+    assert c.on_image(**_image()).status is DetectStatus.FOUND  # plumb_bob is applied
+    monkeypatch.setattr(detector_module, 'DISTORTION_APPLIED', frozenset())
+    out = c.on_image(**_image())
+    assert out.status is DetectStatus.REJECTED and 'plumb_bob distortion d' in out.reason
 
 
 @pytest.mark.parametrize('over, error, needle', [

@@ -56,7 +56,8 @@ class Topics:
 
 @pytest.mark.parametrize('config, ideal', [
     ('special_sphere', True), ('cc_target', True), ('wrong_radius', False),
-    ('calibration_error', False), ('balloon', False)])
+    ('calibration_error', False), ('balloon', False), ('fisheye', True),
+    ('catadioptric', True)])
 def test_full_loop_converges(config, ideal, launch, test_node):
     node, spin = test_node
     topics = Topics(node)

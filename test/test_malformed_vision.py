@@ -18,7 +18,6 @@ pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402, I100
 from sensor_msgs.msg import CameraInfo, Image, JointState  # noqa: E402
 from sphere_servo.core.camera import CameraIntrinsics  # noqa: E402
-from sphere_servo.core.camera_models import FisheyeCamera  # noqa: E402
 from sphere_servo.core.targets import special_sphere  # noqa: E402
 from sphere_servo.experiments.scenarios import CMO_DESIRED  # noqa: E402
 from sphere_servo.ros.conversions import header, image_from_array  # noqa: E402
@@ -95,9 +94,14 @@ DETECTOR_CASES = {  # kind: (camera_info fields, image fields, what the log line
     'camera_info size mismatch': ({'width': 320, 'height': 240,
                                    'k': [300.0, 0.0, 160.0, 0.0, 300.0, 120.0, 0.0, 0.0, 1.0]},
                                   {}, ['camera size = 320x240', '640x480']),
-    'non-zero distortion': ({'d': [0.05, 0.0, 0.0, 0.0, 0.0]}, {}, ['plumb_bob distortion d']),
-    'a fisheye camera_info': ({**FisheyeCamera(px=300.0, py=300.0).to_camera_info_fields()},
-                              {}, ['camera model', 'FisheyeCamera']),
+    'equidistant with 5 coefficients': ({'distortion_model': 'equidistant',
+                                         'd': [0.1, 0.0, 0.0, 0.0, 0.0]}, {},
+                                        ['CameraInfo.d', 'needs 4 coefficients']),
+    'a fisheye distortion that folds': ({'distortion_model': 'equidistant',
+                                         'd': [-2.0, 0.0, 0.0, 0.0]}, {},
+                                        ['FisheyeCamera distortion', 'not invertible']),
+    'unified with xi < 0': ({'distortion_model': 'unified', 'd': [-0.5, 0.0, 0.0, 0.0, 0.0]},
+                            {}, ['xi = -0.5', 'xi >= 0']),
     'fx = 1e300': ({'k': [1e300] + K[1:]}, {}, ['px', 'focal lengths must be within']),
     'K of zeros (uncalibrated)': ({'k': [0.0] * 9}, {}, ['not calibrated']),
     'K with NaN': ({'k': K[:5] + [math.nan] + K[6:]}, {}, ['CameraInfo.k', 'finite']),

@@ -109,3 +109,35 @@ def test_arm_run_ends_where_a_singularity_stops_the_arm():
     row = study_cells.run_cell(_task('arm', 'ibvs', 19, poses))
     assert row['reason'] == res.reason and not row['success']
     assert row['reason'] == 'singularity: the arm stopped near a singular configuration'
+
+
+def test_camera_conditions_see_what_each_camera_sees():
+    """
+    The same starts through each camera: what leaves a pinhole's image stays in a fisheye's.
+
+    From the pinhole's starts, the runs of ``s`` whose target leaves the pinhole's image
+    succeed through the fisheye with the target in view all along; the wide starts are in
+    both wide images, some far outside the pinhole's view (not in view at the start, no
+    run), where the fisheye's s_n run converges.
+    """
+    poses = study_cells.start_poses(6, seed=0)
+    rows = [study_cells.run_cell(_task('ideal', 's', i, poses)) for i in range(6)]
+    left = [r['idx'] for r in rows if r['converged'] and r['left_image']]
+    assert left, 'no pinhole start of s leaves the image: pick another seed'
+    for i in left:
+        r = study_cells.run_cell(_task('fisheye', 's', i, poses))
+        assert r['success'] and not r['left_image'], r
+    wide = study_cells.wide_start_poses(6, seed=0)
+    cams = [study_cells.camera('fisheye'), study_cells.camera('catadioptric')]
+    unseen = []
+    for i, p in enumerate(wide):
+        obs = observe(p, cc_target(), max_angle=min(c.max_angle for c in cams))
+        rays = np.array([obs.sphere.b, *obs.q.values()])
+        assert all(np.all(c.in_view(rays, margin=20.0)) for c in cams)
+        if not np.all(study_cells.CAM.in_view(rays)):
+            unseen.append(i)
+    assert unseen
+    r = study_cells.run_cell(_task('pinhole_wide', 's_n', unseen[0], wide))
+    assert not r['success'] and r['reason'] == study_cells.NOT_IN_VIEW and r['iterations'] == 0
+    r = study_cells.run_cell(_task('fisheye_wide', 's_n', unseen[0], wide))
+    assert r['success'], r

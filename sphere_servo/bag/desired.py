@@ -21,11 +21,10 @@ import numpy as np
 
 from sphere_servo.bag.bagio import BagError
 from sphere_servo.bag.offline import Cameras, Frame, header_ns, Pipeline, TOL
-from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import Observation, observe
-from sphere_servo.pipeline.common import parse_stamp, stamp_text
+from sphere_servo.pipeline.common import parse_stamp, Refusal, stamp_text
 from sphere_servo.pipeline.detector import camera_from_info
 from sphere_servo.pipeline.features import observation_from_image, read_image
 from sphere_servo.pipeline.params import ParameterError
@@ -76,9 +75,9 @@ def _from_image(pipe: Pipeline, path: Path, cameras: Cameras) -> Desired:
         raise BagError('--desired image needs a camera_info in the bag')
     info = cameras.infos[0][1]
     cam = camera_from_info(info.width, info.height, info.k, info.d,
-                           pipe.features.params.intrinsics_error)
+                           pipe.features.params.intrinsics_error, info.distortion_model)
     try:
-        if not isinstance(cam, CameraIntrinsics):
+        if isinstance(cam, Refusal):
             raise ValueError(cam.reason)
         obs = observation_from_image(bgr, pipe.target, cam)
     except (ValueError, GeometryError) as exc:

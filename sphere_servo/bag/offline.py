@@ -12,9 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sphere_servo.bag.bagio import BagError, iter_raw, select_connections
-from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.measurement import Observation
-from sphere_servo.pipeline.common import stamp_ns
+from sphere_servo.pipeline.common import Refusal, stamp_ns
 from sphere_servo.pipeline.config import load_node_params, section
 from sphere_servo.pipeline.detector import camera_from_info, DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore, FeaturesOutput
@@ -96,13 +96,13 @@ class Pipeline:
         self.target, self.kind = self.features.target, self.features.kind
         self.desired_obs: Observation | None = None
 
-    def camera(self, info) -> CameraIntrinsics | None:
-        """Return the detector's intrinsics of a (rosbags) CameraInfo, None if unusable."""
+    def camera(self, info) -> CentralCamera | None:
+        """Return the detector's camera of a (rosbags) CameraInfo, None if unusable."""
         cam = camera_from_info(info.width, info.height, info.k, info.d,
-                               self.settings.detector.intrinsics_error)
-        return cam if isinstance(cam, CameraIntrinsics) else None
+                               self.settings.detector.intrinsics_error, info.distortion_model)
+        return None if isinstance(cam, Refusal) else cam
 
-    def measure(self, img, camera: CameraIntrinsics | None) -> Measurement:
+    def measure(self, img, camera: CentralCamera | None) -> Measurement:
         """Return ``detector/measurement`` of one (rosbags) Image (empty: not detected)."""
         return self.detector.detect(img.height, img.width, img.step, img.encoding, img.data,
                                     camera).measurement
@@ -188,7 +188,7 @@ class Cameras:
         self.by_stamp = {header_ns(m.header): pipeline.camera(m) for _, m in infos}
         self.by_time = [(ts, pipeline.camera(m)) for ts, m in infos]
 
-    def __call__(self, bag_ns: int, stamp: int) -> CameraIntrinsics | None:
+    def __call__(self, bag_ns: int, stamp: int) -> CentralCamera | None:
         """Return the camera of the image stamped ``stamp`` recorded at ``bag_ns``."""
         if stamp in self.by_stamp:
             return self.by_stamp[stamp]

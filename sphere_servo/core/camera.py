@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-from sphere_servo.core.central import (CameraError, CentralCamera, det2, first_fold, Lifted,
-                                       odd_poly, radtan, undistort_radtan)
+from sphere_servo.core.central import CameraError, CentralCamera, Lifted
+from sphere_servo.core.distortion import det2, first_fold, odd_poly, radtan, undistort_radtan
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2
 from sphere_servo.core.validation import Bound, Violation

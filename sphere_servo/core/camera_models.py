@@ -34,8 +34,9 @@ import math
 import numpy as np
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.central import (CameraError, CentralCamera, det2, first_fold, Lifted,
-                                       odd_poly, radtan, solve_odd_poly, undistort_radtan)
+from sphere_servo.core.central import CameraError, CentralCamera, Lifted
+from sphere_servo.core.distortion import (det2, first_fold, odd_poly, radtan, solve_odd_poly,
+                                          undistort_radtan)
 from sphere_servo.core.validation import Bound, check_number, refuse
 
 
@@ -287,13 +288,16 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     k = np.asarray(k, dtype=float).ravel()
     if k.size != 9:
         refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.SHAPE,
-               f'CameraInfo.k must have 9 entries (9 finite numbers, row-major), got {k.size}')
+               f'CameraInfo.k must have 9 entries (9 finite ones), got {k.size}')
     if not np.all(np.isfinite(k)):
         refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.FINITE,
                'CameraInfo.k must be 9 finite entries')
     if not np.any(k):  # what a camera driver publishes before a calibration
         refuse(CameraError, 'px', 0.0, Bound.RANGE,
                'focal lengths must be > 0 (a K of zeros: the camera is not calibrated)')
+    for name, f in (('px', k[0]), ('py', k[4])):  # before the form
+        if not f > 0.0:
+            refuse(CameraError, name, float(f), Bound.RANGE, 'focal lengths must be > 0')
     if k[1] != 0.0 or k[3] != 0.0 or k[6] != 0.0 or k[7] != 0.0 or k[8] != 1.0:
         refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.UNSUPPORTED,
                'CameraInfo.k must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)')

@@ -294,12 +294,16 @@ def mark_visible(cMo: pin.SE3, target: Target, name: str) -> bool:
     return float(n_c @ cP) < 0
 
 
-def observe(cMo: pin.SE3, target: Target, require_visible: bool = True) -> Observation:
+def observe(cMo: pin.SE3, target: Target, require_visible: bool = True,
+            max_angle: float = 0.5 * math.pi) -> Observation:
     """
     Exact observation of a *spherical* target seen from pose ``cMo`` (target in camera).
 
-    Raises :class:`MeasurementError` if the sphere is not entirely in front of the camera or
-    (with ``require_visible``) a mark is hidden.
+    ``max_angle``: the half-angle (rad) of the camera's field about the optical axis (a
+    central camera's ``max_angle``; π/2, in front of the camera, for a pinhole). Raises
+    :class:`MeasurementError` if the sphere's silhouette cone is not entirely within that
+    field — ``∠(b, z) + asin r_δ < max_angle``, for π/2 the same as ``b_z > r_δ`` — or (with
+    ``require_visible``) a mark is hidden.
     """
     if not target.is_sphere:
         raise MeasurementError('exact observation is defined for spherical targets only')
@@ -309,8 +313,11 @@ def observe(cMo: pin.SE3, target: Target, require_visible: bool = True) -> Obser
         raise MeasurementError('camera is inside the sphere')
     b = cO / dist
     r_delta = target.radius / dist
-    if b[2] <= r_delta:  # cone of the silhouette must be in front of the camera
-        raise MeasurementError('sphere is not entirely in front of the camera')
+    if max_angle == 0.5 * math.pi:
+        if b[2] <= r_delta:  # cone of the silhouette must be in front of the camera
+            raise MeasurementError('sphere is not entirely in front of the camera')
+    elif math.acos(max(-1.0, min(1.0, float(b[2])))) + math.asin(r_delta) >= max_angle:
+        raise MeasurementError('sphere is not entirely in the camera field')
     q = {}
     for name, oP in target.marks().items():
         if require_visible and not mark_visible(cMo, target, name):

@@ -18,7 +18,9 @@ the conic path (:func:`~sphere_servo.core.measurement.sphere_from_conic`).
    S² (two tangent coordinates) and ``θ``.
 3. Robust to outliers as the image conic fit is (mark notches, the CC stick, clutter): the
    rays whose residual is more than ``max(3σ, tol)`` from the median (σ from the MAD) are
-   dropped and the circle refitted, a few rounds.
+   dropped and the circle refitted, a few rounds. Residuals are angles, or — given a
+   ``scale`` per ray, e.g. the pixels per radian across the silhouette there — pixels, so
+   that the rule is the image conic fit's.
 """
 from __future__ import annotations
 
@@ -47,12 +49,14 @@ class SmallCircleFit:
     theta      half-angle θ of the silhouette cone (rad).
     rms        RMS angular residual of the inliers (rad).
     inliers    (N,) bool, the rays kept.
+    residuals  (N,) angular residuals ``φ_i − θ`` of every ray (rad; > 0 outside).
     """
 
     sphere: SphereMeasurement
     theta: float
     rms: float
     inliers: np.ndarray
+    residuals: np.ndarray | None = None
 
 
 def _rays(rays) -> np.ndarray:
@@ -124,14 +128,15 @@ def _refine(b: np.ndarray, q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, fl
     return b, theta
 
 
-def fit_small_circle(rays, weights=None, *, tol: float = 1e-6,
-                     rounds: int = 3) -> SmallCircleFit:
+def fit_small_circle(rays, weights=None, *, tol: float = 1e-6, rounds: int = 3,
+                     scale=None) -> SmallCircleFit:
     """
     Fit the dome's base circle ``bᵀq = cos θ`` to (N, 3) edge rays (any length).
 
     ``weights`` (N,) ≥ 0 are optional per-ray weights (e.g. the inverse angular variance of
-    a pixel's lift); ``tol`` (rad) is the smallest outlier threshold, for exact or nearly
-    exact data (σ from the MAD is then ~0); ``rounds`` of outlier rejection.
+    a pixel's lift); ``tol`` is the smallest outlier threshold, for exact or nearly exact
+    data (σ from the MAD is then ~0); ``rounds`` of outlier rejection. ``scale`` (N,) > 0:
+    the rejection rule and ``tol`` are on the residuals times ``scale`` (rad without).
 
     Raises :class:`MeasurementError` for fewer than :data:`MIN_POINTS` rays (or inliers),
     NaN, rays that do not span a circle, or a circle that is not a sphere's silhouette (a
@@ -146,6 +151,11 @@ def fit_small_circle(rays, weights=None, *, tol: float = 1e-6,
         w = np.asarray(weights, dtype=float).ravel()
         if w.shape != (len(q),) or not np.all(np.isfinite(w)) or np.any(w < 0):
             raise MeasurementError('weights must be N finite values >= 0')
+    g = 1.0
+    if scale is not None:
+        g = np.asarray(scale, dtype=float).ravel()
+        if g.shape != (len(q),) or not np.all(np.isfinite(g)) or np.any(g <= 0):
+            raise MeasurementError('scale must be N finite values > 0')
     keep = w > 0
     for it in range(rounds + 1):
         if np.count_nonzero(keep) < MIN_POINTS:
@@ -157,7 +167,7 @@ def fit_small_circle(rays, weights=None, *, tol: float = 1e-6,
             raise MeasurementError('edge rays lie on a great circle: not the silhouette of a '
                                    'sphere in front of the projection centre (r_δ = 1)')
         b, theta = _refine(b, qk, wk)
-        d = _angles(b, q) - theta
+        d = (_angles(b, q) - theta) * g
         dk = d[keep]
         med = _median(dk)
         sigma = 1.4826 * _median(np.abs(dk - med))
@@ -168,10 +178,25 @@ def fit_small_circle(rays, weights=None, *, tol: float = 1e-6,
     if not 0.0 < theta < 0.5 * math.pi:
         raise MeasurementError(f'small circle of radius {math.degrees(theta):.3f}° is not a '
                                f'sphere silhouette')
+    d = d / g
     rk = d[keep]
     rms = math.sqrt(float(rk @ rk) / len(rk))
     sphere = SphereMeasurement(b=b, r_delta=math.sin(theta), quality=rms / theta)
-    return SmallCircleFit(sphere=sphere, theta=theta, rms=rms, inliers=keep)
+    return SmallCircleFit(sphere=sphere, theta=theta, rms=rms, inliers=keep, residuals=d)
+
+
+def circle_rays(b, theta: float, n: int) -> np.ndarray:
+    """
+    Return (n, 3) unit rays evenly spaced on the small circle ``bᵀq = cos θ`` (b unit).
+
+    The silhouette of a sphere of ``b``, ``θ = asin r_δ``, to be projected by any camera.
+    """
+    b = normalize(np.asarray(b, dtype=float))
+    e1 = normalize(cross3(b, _EX if abs(b[0]) < 0.9 else _EY))
+    e2 = cross3(b, e1)
+    t = np.linspace(0.0, 2.0 * math.pi, int(n), endpoint=False)
+    ring = np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2
+    return math.cos(theta) * b + math.sin(theta) * ring
 
 
 def sphere_from_rays(rays, weights=None, **kw) -> SphereMeasurement:

@@ -18,7 +18,21 @@ arm        ideal, with the UR5 in the loop (``arm_cell.run_arm``) and the       
            robot cell's safety limit elbow ≤ 2.04 rad
            (``scenarios.JL_CELL_LIMITS``); starts the arm cannot reach inside
            its limits are left out
+fisheye    ideal, seen by the equidistant fisheye of config/params/fisheye.yaml  exact obs.
+catadiop.  ideal, seen by the unified ξ = 0.9 camera of catadioptric.yaml     exact obs.
+*_wide     pinhole_wide, fisheye_wide, catadioptric_wide: ideal, each camera  exact obs.
+           from the same *wide* starts (below)
 =========  =================================================================  ===========
+
+The camera conditions (issue 18) compare the cameras from the same starts: ``fisheye`` and
+``catadioptric`` from the pinhole's starts (does the target still leave the image?), the
+``*_wide`` ones from starts drawn for the wide cameras: the camera turned away from the
+sphere by up to :data:`WIDE_TURN_DEG` about an axis across its optical axis, the sphere
+centre and both marks at least 20 px inside the images of both wide cameras. A start whose
+target is not in a camera's image (the pinhole's, for most wide starts) is a failure
+"not in view at the start", without a run. The features are on the projection sphere, so
+with exact intrinsics the observation is the same through every camera; what the camera
+changes is what it sees: the start and the target leaving the image during the run.
 
 "exact obs." is the analytic image (``sim/observers.exact_observer``): same geometry as the
 detector's output, ~20× faster; ``images`` runs the first ``--n-images`` starts only.
@@ -41,12 +55,14 @@ A run's row is a JSON-able dict; its ``reason`` starts with the run's
 """
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import observe
 from sphere_servo.core.targets import balloon, cc_target
@@ -54,6 +70,8 @@ from sphere_servo.experiments.arm_cell import arm_start, make_arm, run_arm
 from sphere_servo.experiments.ibvs import IbvsFeatures
 from sphere_servo.experiments.scenarios import (ADAPTIVE, CALIB_ERROR, camera_at, CMO_DESIRED,
                                                 DT, IMAGE_TOL, JL_CELL_LIMITS)
+from sphere_servo.pipeline.config import scenario
+from sphere_servo.pipeline.params import ArmSimParams
 from sphere_servo.sim.loop import LoopResult, run_loop
 from sphere_servo.sim.observers import exact_observer, image_observer
 from sphere_servo.sim.plants import LoopOutcome
@@ -61,7 +79,13 @@ from sphere_servo.sim.plants import LoopOutcome
 SETS = ('s_cc', 's_n', 's', 'ibvs')
 #: what the loop is given for each set: a name it knows, or the baseline's class
 SET_SPECS = {'ibvs': IbvsFeatures}
-CONDITIONS = ('ideal', 'rhat_0.5', 'rhat_2', 'calib', 'noise', 'images', 'balloon', 'arm')
+CONDITIONS = ('ideal', 'rhat_0.5', 'rhat_2', 'calib', 'noise', 'images', 'balloon', 'arm',
+              'fisheye', 'catadioptric', 'pinhole_wide', 'fisheye_wide', 'catadioptric_wide')
+#: condition → the camera it is seen by (the others: the pinhole CAM)
+CAMERA_OF = {'fisheye': 'fisheye', 'catadioptric': 'catadioptric', 'pinhole_wide': 'pinhole',
+             'fisheye_wide': 'fisheye', 'catadioptric_wide': 'catadioptric'}
+WIDE = ('pinhole_wide', 'fisheye_wide', 'catadioptric_wide')   # from the wide starts
+WIDE_TURN_DEG = 100.0      # the wide starts' camera turned away from the sphere up to this
 MAX_ITER = 400
 MAX_MARK_ANGLE_DEG = 80.0  # P1 at most this far from face-on at the start
 NOISY = ('noise',)  # judged on its steady state (see settle_stats)
@@ -69,16 +93,30 @@ NOISY_ITER = 300
 SETTLE_WINDOW = 50
 MAX_LOST = 5  # consecutive lost frames held through with zero twist, as the servo node does
 CAM = CameraIntrinsics()
+_CAMERAS = {}
+
+
+def camera(name: str) -> CentralCamera:
+    """Return the study's camera ``name``: 'pinhole' (CAM) or a wide config's arm_sim camera."""
+    if name == 'pinhole':
+        return CAM
+    if name not in _CAMERAS:
+        _CAMERAS[name] = ArmSimParams.from_mapping(scenario(name).node_params('arm_sim')).camera()
+    return _CAMERAS[name]
 
 
 def start_poses(n: int, seed: int = 0, margin_px: float = 20.0,
-                max_mark_angle_deg: float = MAX_MARK_ANGLE_DEG) -> list:
+                max_mark_angle_deg: float = MAX_MARK_ANGLE_DEG, cameras=(CAM,),
+                turn_deg: float = 0.0) -> list:
     """
     Draw ``n`` random ``cMo`` with the CC target's sphere centre and marks in the image.
 
-    The surface mark P1 is seen at most ``max_mark_angle_deg`` from face-on: a mark closer
-    to the limb is a sliver of a few pixels that no detector finds, so such a start tests
-    the sampler rather than the servo.
+    In the image of each of ``cameras``, ``margin_px`` inside. The camera aimed at the
+    sphere, then (``turn_deg`` > 0) turned away from it by an angle uniform in
+    ``[0, turn_deg]`` about a random axis across its optical axis. The surface mark P1 is
+    seen at most ``max_mark_angle_deg`` from face-on: a mark closer to the limb is a sliver
+    of a few pixels that no detector finds, so such a start tests the sampler rather than
+    the servo.
     """
     rng = np.random.default_rng(seed)
     target = cc_target()
@@ -90,17 +128,28 @@ def start_poses(n: int, seed: int = 0, margin_px: float = 20.0,
         u[2] = -abs(u[2]) - 0.7  # the marked cap faces −z
         cMo = camera_at(d * u / np.linalg.norm(u), rng.uniform(-150, 150),
                         rng.normal(size=3) * 0.02)
+        if turn_deg > 0:
+            a = rng.uniform(0.0, 2.0 * np.pi)
+            turn = np.radians(rng.uniform(0.0, turn_deg))
+            cMo = pin.SE3(pin.exp3(turn * np.array([np.cos(a), np.sin(a), 0.0])),
+                          np.zeros(3)) * cMo
         try:
-            obs = observe(cMo, target)
+            obs = observe(cMo, target, max_angle=min(c.max_angle for c in cameras))
         except GeometryError:
             continue
         rays = np.array([obs.sphere.b, *obs.q.values()])
         cP1 = cMo.act(oP1)
         n_c = cMo.rotation @ target.surface_normal(oP1)
-        if (np.all(CAM.in_image(CAM.project(rays), margin=margin_px))
+        if (all(np.all(c.in_view(rays, margin=margin_px)) for c in cameras)
                 and -(n_c @ cP1) / np.linalg.norm(cP1) >= cos_max):
             poses.append(cMo)
     return poses
+
+
+def wide_start_poses(n: int, seed: int = 0) -> list:
+    """Draw the wide starts: in both wide cameras' images, turned up to WIDE_TURN_DEG."""
+    return start_poses(n, seed + 1, cameras=(camera('fisheye'), camera('catadioptric')),
+                       turn_deg=WIDE_TURN_DEG)
 
 
 def run_cell(task: tuple) -> dict:
@@ -121,11 +170,23 @@ def run_cell(task: tuple) -> dict:
     elif cond == 'noise':
         obs = exact_observer(target, CAM, pixel_noise=1.0, seed=idx)
         desired = exact_observer(target, CAM)(CMO_DESIRED)
+    elif cond in CAMERA_OF:
+        ctrl_cam = camera(CAMERA_OF[cond])
+        obs = functools.partial(observe, target=target, max_angle=ctrl_cam.max_angle)
     else:
         obs = exact_observer(target, CAM, None if ctrl_cam is CAM else ctrl_cam)
     t0 = time.perf_counter()
     if cond == 'arm':
         return _run_arm_cell(cond, fs, idx, cMo, target, t0)
+    if cond in CAMERA_OF:
+        try:
+            seen = observe(cMo, target, max_angle=ctrl_cam.max_angle)
+            rays = np.array([seen.sphere.b, *seen.q.values()])
+            in_view = bool(np.all(ctrl_cam.in_view(rays)))
+        except GeometryError:
+            in_view = False
+        if not in_view:
+            return _lost_at_start(cond, fs, idx, NOT_IN_VIEW, t0)
     try:
         obs(cMo)  # run_loop cannot report a failure of the very first observation
         # with noise ‖s − s*‖ never settles under a tolerance: run the whole horizon and
@@ -157,10 +218,15 @@ def run_cell(task: tuple) -> dict:
     return row
 
 
-def _lost_at_start(cond: str, fs: str, idx: int, exc: Exception, t0: float) -> dict:
+#: the cause of a camera condition's start whose target is not in the camera's image
+NOT_IN_VIEW = 'not in view at the start'
+
+
+def _lost_at_start(cond: str, fs: str, idx: int, exc: Exception | str, t0: float) -> dict:
     """Return the row of a run whose target is not observable from its start."""
     return {'cond': cond, 'set': fs, 'idx': idx, 'success': False, 'converged': False,
-            'reason': f'{LoopOutcome.TARGET_LOST.value} at the start: {exc}',
+            'reason': exc if exc == NOT_IN_VIEW else
+            f'{LoopOutcome.TARGET_LOST.value} at the start: {exc}',
             'left_image': False, 'iterations': 0, 'path': 0.0, 'straight': 1.0,
             'seconds': time.perf_counter() - t0}
 
@@ -229,9 +295,11 @@ def settle_stats(res: LoopResult) -> dict:
 def tasks(n: int, n_images: int, seed: int) -> list:
     """List the study's cells: ``(condition, set, start index, cMo homogeneous)``."""
     poses = start_poses(n, seed)
+    wide = wide_start_poses(n, seed)
     out = []
     for cond in CONDITIONS:
-        for idx, cMo in enumerate(poses[:n_images] if cond == 'images' else poses):
+        starts = wide if cond in WIDE else poses
+        for idx, cMo in enumerate(starts[:n_images] if cond == 'images' else starts):
             for fs in SETS:
                 if cond == 'balloon' and fs == 's_cc':
                     continue

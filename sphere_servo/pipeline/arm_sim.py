@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.targets import make_target, Target
 from sphere_servo.core.types import Image
 from sphere_servo.pipeline.common import Level, NodeStatus, Reply
@@ -167,10 +167,9 @@ def frame_refusal(frame_id: str) -> str:
     return ''
 
 
-def sim_camera(p: ArmSimParams) -> CameraIntrinsics:
-    """Return the simulated camera's true intrinsics."""
-    return CameraIntrinsics(px=p.camera_px, py=p.camera_py, u0=p.camera_u0, v0=p.camera_v0,
-                            width=p.camera_width, height=p.camera_height)
+def sim_camera(p: ArmSimParams) -> CentralCamera:
+    """Return the simulated camera: its model, true intrinsics and distortion."""
+    return p.camera()
 
 
 def sim_target(p: ArmSimParams) -> Target:

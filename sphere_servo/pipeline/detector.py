@@ -1,9 +1,12 @@
 """
 The detector's logic without ROS: camera_info → the camera, an image buffer → a detection.
 
-:class:`DetectorCore` holds the camera of the latest usable ``camera_info`` (its true
-intrinsics with ``intrinsics_error`` applied: relative errors (px, py, u0, v0), the paper's
-calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``) and runs the vision layer's
+:class:`DetectorCore` holds the camera of the latest usable ``camera_info`` — its model
+(``distortion_model`` plumb_bob, equidistant or unified, built by
+:func:`~sphere_servo.core.camera_models.camera_from_camera_info_fields`; the detector
+applies each model's distortion) with ``intrinsics_error`` applied to its intrinsics:
+relative errors (px, py, u0, v0), the paper's calibration-error experiment is
+``[0.35, 0.30, -0.25, 0.27]`` — and runs the vision layer's
 :class:`~sphere_servo.vision.detector.Detector` on each image. A camera_info is *refused*
 (no camera, and why) when :func:`camera_from_info` refuses it: a K no camera has (not
 finite, skew, ``fx = 1e300``, a focal length ≤ 0, a principal point far off the image), an
@@ -11,9 +14,9 @@ unknown distortion model, or an ``intrinsics_error`` that makes the camera impos
 error is named). An image is *rejected*, the result says why and its measurement is empty
 (target lost, so the servo stops), on a bad buffer (unsupported encoding, ``step``/``data``
 lengths that disagree, zero size), no usable camera, or a camera the detector cannot use
-for it (:func:`detector_camera`: another size than the image's, or a distortion the
-detector does not apply). :meth:`DetectorCore.status` is the node's status: the latest
-image's outcome.
+for it (:func:`detector_camera`: another size than the image's, or a model whose
+distortion the detector does not apply). :meth:`DetectorCore.status` is the node's status:
+the latest image's outcome.
 """
 from __future__ import annotations
 
@@ -21,8 +24,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 
+from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
-                                             check_camera_for_image)
+                                             check_camera_for_image, FisheyeCamera,
+                                             UnifiedCamera)
 from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.targets import make_target
 from sphere_servo.core.types import Image
@@ -33,11 +38,11 @@ from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
 
 
 NO_CAMERA = 'no valid camera_info received yet'
-#: the camera models whose distortion the detector applies. It fits the silhouette's conic
-#: and reads the marks with K alone, so none yet: a camera with a distortion (a plumb_bob d
-#: that is not zero, a fisheye, a unified camera) is refused, never silently measured as
-#: a distortion-free pinhole. Lifting the refusal for a model is adding it here.
-DISTORTION_APPLIED: frozenset[type] = frozenset()
+#: the camera models whose distortion the detector applies: it lifts the silhouette's edge
+#: and the marks through the model onto the unit sphere. A model not in it is refused,
+#: never silently measured as a distortion-free pinhole.
+DISTORTION_APPLIED: frozenset[type] = frozenset({CameraIntrinsics, FisheyeCamera,
+                                                 UnifiedCamera})
 
 
 def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[float] | None,

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from sphere_servo.core.camera_models import camera_from_camera_info_fields, MODELS
 from sphere_servo.core.control import INTERACTION_CHOICES
 from sphere_servo.core.features import FEATURE_SETS
 
@@ -366,6 +367,17 @@ class ArmSimParams(NodeParams):
                               **FIXED)
     camera_height: int = param(480, 'image height (px)', bounds=(1, 8192),
                                name='camera.height', **FIXED)
+    camera_model: str = param('plumb_bob', "camera model, CameraInfo's distortion_model: "
+                              "'plumb_bob' (pinhole), 'equidistant' (fisheye, Kannala–Brandt), "
+                              "'unified' (catadioptric or fisheye, Mei)", choices=MODELS,
+                              name='camera.model', **FIXED)
+    camera_d: tuple[float, ...] = param(
+        [0.0, 0.0, 0.0, 0.0, 0.0], 'distortion coefficients: plumb_bob k1 k2 t1 t2 k3, '
+        'equidistant k1 k2 k3 k4, unified k1 k2 p1 p2 (ξ is camera.xi); all zero: none',
+        name='camera.d', **FIXED)
+    camera_xi: float = param(0.0, "the unified model's ξ (0: a pinhole, 0.9: a hyperbolic "
+                             'mirror, 1: a parabolic one)', bounds=(0.0, 10.0), name='camera.xi',
+                             **FIXED)
     hand_eye: tuple[float, ...] = param(
         [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'tool0Mc: camera optical frame in tool0, [x y z roll '
         'pitch yaw] (m, rad); identity looks out of the flange', size=6,
@@ -419,8 +431,30 @@ class ArmSimParams(NodeParams):
                                    "machine's meshes, for a viewer on this machine without "
                                    'it)', choices=('package', 'file'), **FIXED)
 
+    def camera(self):
+        """
+        Return the simulated camera, as the CameraInfo factory builds it from these values.
+
+        ``camera.d`` all zero, of any length, is no distortion. ParameterError when the
+        factory refuses the camera (a wrong number of coefficients, a fold in the image…).
+        """
+        n = {'plumb_bob': 5, 'equidistant': 4, 'unified': 4}[self.camera_model]
+        d = list(self.camera_d)
+        if not any(d):
+            d = [0.0] * n
+        if self.camera_model == 'unified':
+            d = [self.camera_xi] + d
+        k = [self.camera_px, 0.0, self.camera_u0, 0.0, self.camera_py, self.camera_v0,
+             0.0, 0.0, 1.0]
+        try:
+            return camera_from_camera_info_fields(self.camera_width, self.camera_height, k, d,
+                                                  self.camera_model)
+        except ValueError as exc:
+            raise ParameterError(f'camera: {exc}') from None
+
     def validate(self) -> None:
-        """Check that the slow-down starts before the stop (singular_threshold > stop)."""
+        """Check the camera, and that the slow-down starts before the stop."""
+        self.camera()
         if not self.singular_threshold > self.singular_stop:
             raise ParameterError('singular_threshold must be > singular_stop, got '
                                  f'{self.singular_threshold} <= {self.singular_stop}')

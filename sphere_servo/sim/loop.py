@@ -189,7 +189,7 @@ def closed_loop(plant: Plant, target: Target, feature_set: FeatureSetSpec = 's_n
             Q.setdefault(mark, []).append(q)
         if camera is not None:
             rays = np.array([obs.sphere.b, *obs.q.values()])
-            in_view.append(bool(np.all(camera.in_image(camera.project(rays)))))
+            in_view.append(bool(np.all(camera.in_view(rays))))
         t.append(k * dt)
         if out.converged:
             V.append(np.zeros(6))

@@ -303,11 +303,8 @@ class Scene:
                     **{name: target.colors.get(name, target.colors.get('P2'))
                        for name in target.marks()}})
         self.set_desired(cMo_desired)
-        W, H = camera.width, camera.height
-        uv = np.array([[0.0, 0.0], [W, 0.0], [W, H], [0.0, H]]) - 0.5  # pixel edges
-        xy = camera.pixel_to_normalized(uv)
         self.cX_frustum = np.vstack([np.zeros(3), self.frustum_depth
-                                     * np.hstack([xy, np.ones((4, 1))])])
+                                     * _corner_rays(camera)])
 
     def set_desired(self, cMo_desired: pin.SE3 | None) -> None:
         """Set the desired camera from the desired target pose ``c*Mo`` (None: no desired)."""
@@ -376,3 +373,26 @@ class Scene:
 
 def _rgba(rgb8) -> tuple:
     return (*(float(c) / 255.0 for c in rgb8[:3]), 1.0)
+
+
+def _corner_rays(camera) -> np.ndarray:
+    """
+    Return the (4, 3) frustum directions of the image corners, as points at depth 1.
+
+    A pinhole's are its corners on the plane z = 1. A wide model's corners may lie beyond
+    its field (a fisheye's image circle): each is pulled toward the principal point until
+    it lifts, and the unit ray is used (it may point behind the image plane).
+    """
+    W, H = camera.width, camera.height
+    uv = np.array([[0.0, 0.0], [W, 0.0], [W, H], [0.0, H]]) - 0.5  # pixel edges
+    if hasattr(camera, 'pixel_to_normalized'):  # a pinhole (plumb_bob undistorted)
+        return np.hstack([camera.pixel_to_normalized(uv), np.ones((4, 1))])
+    centre = np.array([camera.u0, camera.v0])
+    rays = np.empty((4, 3))
+    for i, corner in enumerate(uv):
+        for f in np.linspace(1.0, 0.0, 41):
+            q, ok = camera.lift_where((centre + f * (corner - centre))[None])
+            if ok[0]:
+                break
+        rays[i] = q[0] if ok[0] else (0.0, 0.0, 1.0)
+    return rays

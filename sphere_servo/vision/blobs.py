@@ -35,6 +35,9 @@ from sphere_servo.core.types import Image
 ON_ELLIPSE = 0.08
 # at least this fraction of the free contour on its ellipse: elliptical (not split)
 ELLIPTICAL = 0.85
+# circularity 4πA/P² of a contour as round as a small disc's (a pixel chain's perimeter is
+# ~10 % longer than the circle's)
+ROUND = 0.7
 
 
 @dataclass(frozen=True)
@@ -183,8 +186,20 @@ class BlobFinder:
         hs, ws = Vs.shape
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE,
                                        offset=off)
-        cands = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
-                       reverse=True)[:self.max_blobs]
+        ranked = sorted((c for c in contours if len(c) >= 8), key=cv2.contourArea,
+                        reverse=True)
+        cands = ranked[:self.max_blobs]
+        # a small sphere among more bright patches of background than max_blobs: the round
+        # ones of the others too (circularity 4πA/P² of a disc's contour ≥ 0.8; background
+        # patches are ragged or long)
+        for c in ranked[self.max_blobs:]:
+            if len(cands) >= 2 * self.max_blobs:
+                break
+            a = cv2.contourArea(c)
+            if a < self.min_area:
+                break
+            if 4.0 * math.pi * a >= ROUND * cv2.arcLength(c, True) ** 2:
+                cands.append(c)
         for c in cands:
             area = cv2.contourArea(c)
             if area < self.min_area:

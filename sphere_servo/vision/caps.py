@@ -12,6 +12,12 @@ m at the cap's centre, the cap's points ``n = m cos φ + (e₁ cos ψ + e₂ sin
 mean is the centroid the cap would have; chord steps on m (two tangent angles, a
 forward-difference Jacobian) match it to the measured one. A cap cut by the limb is
 handled by the same model (its hidden part does not project).
+
+Through any central camera (a fisheye, a catadioptric) the image is not a plane, but its
+pixels are rays: the mean of the cap's rays weighted by their solid angles
+(``dA cos i / ‖P‖²`` per surface area) depends on the camera centre only.
+:func:`predicted_direction` predicts it, in gnomonic coordinates of a given frame, and
+:func:`match_centroid` matches it the same way.
 """
 from __future__ import annotations
 
@@ -71,13 +77,34 @@ def predicted_centroid(sphere: SphereMeasurement, m: np.ndarray, rho: float
     return (P[:2] @ w) / sw
 
 
-def _jacobian_inv(sphere, m, rho, c, h: float = 1e-4) -> np.ndarray | None:
+def predicted_direction(sphere: SphereMeasurement, m: np.ndarray, rho: float,
+                        frame: np.ndarray) -> np.ndarray | None:
+    """
+    Predict the mean direction of the cap (m, ρ)'s rays, weighted by their solid angles.
+
+    As gnomonic coordinates (2,) in ``frame`` (rows e1, e2, a: ``(e1·d, e2·d)/(a·d)``);
+    None when the cap is hidden.
+    """
+    n = tangent_basis(m).T @ _cap_samples(rho)                  # (3, N) unit normals
+    P = n + sphere.s_nt[:, None]
+    facing = -np.einsum('ij,ij->j', n, P)                # ‖P‖ cos i
+    ok = facing > 0
+    if not ok.all():
+        if not ok.any():
+            return None
+        P, facing = P[:, ok], facing[ok]
+    pp = np.einsum('ij,ij->j', P, P)
+    d = frame @ (P @ (facing / (pp * pp)))               # Σ (cos i/‖P‖²) P/‖P‖
+    return d[:2] / d[2]
+
+
+def _jacobian_inv(sphere, m, rho, c, predict, h: float = 1e-4) -> np.ndarray | None:
     """Invert d(centroid)/d(tangent angles) at m, by forward differences."""
     B = tangent_basis(m)
     J = np.empty((2, 2))
     for a in range(2):
         ma = m + h * B[a]
-        ca = predicted_centroid(sphere, ma / math.sqrt(float(ma @ ma)), rho)
+        ca = predict(sphere, ma / math.sqrt(float(ma @ ma)), rho)
         if ca is None:
             return None
         J[:, a] = (ca - c) / h
@@ -88,23 +115,26 @@ def _jacobian_inv(sphere, m, rho, c, h: float = 1e-4) -> np.ndarray | None:
 
 
 def match_centroid(sphere: SphereMeasurement, m0: np.ndarray, rho: float,
-                   centroid: np.ndarray, iters: int = 6, tol: float = 1e-4
-                   ) -> np.ndarray | None:
+                   centroid: np.ndarray, predict=predicted_centroid, iters: int = 6,
+                   tol: float = 1e-4) -> np.ndarray | None:
     """
     Find the unit normal m whose cap (radius ``rho``) images with the normalized ``centroid``.
 
-    Chord steps from ``m0`` (the back-projected mean, close) over the two tangent angles:
-    the Jacobian (forward differences) of the first point, renewed after a long step.
-    None when the model has no visible cap or the Jacobian is singular.
+    ``predict(sphere, m, rho)``: the model of the measured figure (the normalized image
+    centroid, :func:`predicted_centroid`, or a mean direction,
+    :func:`predicted_direction`). Chord steps from ``m0`` (the back-projected mean, close)
+    over the two tangent angles: the Jacobian (forward differences) of the first point,
+    renewed after a long step. None when the model has no visible cap or the Jacobian is
+    singular.
     """
     m = np.asarray(m0, float) / np.linalg.norm(m0)
     Ji = None
     for _ in range(iters):
-        c = predicted_centroid(sphere, m, rho)
+        c = predict(sphere, m, rho)
         if c is None:
             return None
         if Ji is None:
-            Ji = _jacobian_inv(sphere, m, rho, c)
+            Ji = _jacobian_inv(sphere, m, rho, c, predict)
             if Ji is None:
                 return None
         d0, d1 = (Ji @ (centroid - c)).tolist()

@@ -1,19 +1,23 @@
 """
 Detector (no ROS): image → the target's conic + the marks' image points. DESIGN.md §2.
 
-For one ``rgb8`` / ``bgr8`` / ``mono8`` image and the intrinsics it is *given* (possibly
-wrong, for the calibration-error experiment — the detector just uses them):
+For one ``rgb8`` / ``bgr8`` / ``mono8`` image and the camera it is *given* (possibly with
+wrong intrinsics, for the calibration-error experiment — the detector just uses them):
 
 1. :mod:`~sphere_servo.vision.image` checks the image;
 2. :mod:`~sphere_servo.vision.silhouette` yields candidate blobs (global and local
    thresholds, :mod:`~sphere_servo.vision.blobs`) with the sub-pixel conic of each, in
    pixels, the most sphere-like first;
 3. a candidate within the calibrated :class:`~sphere_servo.vision.scoring.FitBounds`
-   (residual, edge coverage, departure from a sphere's image) gives the sphere, from its
-   conic in *normalized* coordinates (:func:`~sphere_servo.core.measurement.sphere_from_conic`);
+   (residual, edge coverage, departure from a sphere's image) gives the sphere, on the
+   projection sphere: for a pinhole without distortion from its conic in *normalized*
+   coordinates (:func:`~sphere_servo.core.measurement.sphere_from_conic`), through any
+   other camera model (plumb_bob, equidistant fisheye, unified) from the small circle of
+   its lifted edge points (:mod:`~sphere_servo.vision.cone`); both give the same sphere on
+   a pinhole;
 4. :mod:`~sphere_servo.vision.marks` finds the marks by colour on that sphere and measures
-   their centres; they must lie on it and fit the target's geometry
-   (:class:`~sphere_servo.vision.scoring.MarkGeometry`).
+   their centres on it, their pixels lifted through the same camera; they must lie on it
+   and fit the target's geometry (:class:`~sphere_servo.vision.scoring.MarkGeometry`).
 
 The first *sure* candidate (its edge contrasted around most of it, tightly fitted) whose
 marks are all found and consistent is the target: a distractor — another sphere, a disc, a
@@ -39,8 +43,10 @@ from sphere_servo.core.conics import (conic_pixels_to_normalized, ellipse_params
 from sphere_servo.core.measurement import (MeasurementError, Observation, sphere_from_conic,
                                            SphereMeasurement)
 from sphere_servo.core.targets import DEFAULT_COLORS, mark_names, SPECIAL, Target
+from sphere_servo.vision.cone import contour_px, fit_cone
 from sphere_servo.vision.image import check_image, image_from_buffer, to_chroma
 from sphere_servo.vision.marks import Mark, MarkFinder
+from sphere_servo.vision.rays import camera_intrinsics, lift_of, ModelLift, PinholeLift
 from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.scoring import FitBounds, foreign_arc, MarkGeometry
 from sphere_servo.vision.silhouette import Silhouette, SilhouetteFinder
@@ -54,18 +60,24 @@ class Detection:
     found          True when the sphere's conic was measured (marks may still be missing).
     reason         why not found, as a message ('' when found): ``str(not_detected)``.
     conic          3×3 conic of the sphere's image in NORMALIZED image coordinates
-                   (``x̄ᵀ C x̄ = 0``, unit Frobenius norm), or None.
+                   (``x̄ᵀ C x̄ = 0``, unit Frobenius norm) — through a camera model, the
+                   sphere's cone ``qᵀ C q = 0`` of rays, the same thing for a pinhole — or
+                   None.
     sphere         :class:`SphereMeasurement` from the conic (b, r_δ, quality), or None.
     quality        eigenvalue spread of the conic (0 for a perfect sphere image); a published
                    fit is within the detector's calibrated bounds.
-    residual_px    RMS distance (px) of the kept edge points to the fitted ellipse.
-    ellipse_px     ``((u_c, v_c), (full_axis_1, full_axis_2), angle_deg)`` for cv2.ellipse.
+    residual_px    RMS distance (px) of the kept edge points to the fitted silhouette.
+    ellipse_px     ``((u_c, v_c), (full_axis_1, full_axis_2), angle_deg)`` for cv2.ellipse
+                   (through a camera model: the conic of the edge pixels, which the
+                   silhouette is only near the image centre).
     marks          name → :class:`~sphere_servo.vision.marks.Mark`.
     cut_by_border  the silhouette touches the image border (fit on the free contour only).
     n_edge_points  edge points used by the final fit.
     coverage       fraction of the edge profiles (on the image) that gave a kept edge point.
     not_detected   why not found (:class:`~sphere_servo.vision.reasons.NotDetected`),
                    None when found.
+    contour_px     (n, 2) pixels of the silhouette through a camera model (its cone
+                   projected), None on the conic path (the ellipse is the silhouette).
     """
 
     found: bool
@@ -80,6 +92,7 @@ class Detection:
     n_edge_points: int = 0
     not_detected: NotDetected | None = None
     coverage: float = float('nan')
+    contour_px: np.ndarray | None = None
 
     @classmethod
     def missed(cls, why: NotDetected, marks: dict) -> 'Detection':
@@ -103,22 +116,6 @@ class Detection:
                 raise MeasurementError(f'mark {name} is not visible')
             q[name] = m.q                  # raises why it is not visible
         return Observation(self.sphere, q, kind)
-
-
-def camera_intrinsics(camera) -> tuple[float, float, float, float]:
-    """``(px, py, u0, v0)`` of anything with those attributes; ``ValueError`` if unusable."""
-    vals = []
-    for name in ('px', 'py', 'u0', 'v0'):
-        try:
-            v = float(getattr(camera, name))
-        except (AttributeError, TypeError, ValueError):
-            raise ValueError(f'camera intrinsics lack a numeric {name!r}') from None
-        vals.append(v)
-    if not all(map(math.isfinite, vals)):
-        raise ValueError(f'camera intrinsics must be finite, got px, py, u0, v0 = {vals}')
-    if vals[0] <= 0 or vals[1] <= 0:
-        raise ValueError(f'focal lengths must be > 0, got px={vals[0]}, py={vals[1]}')
-    return tuple(vals)
 
 
 # the stages a candidate goes through; a miss further on says more about the image
@@ -179,6 +176,9 @@ class Detector:
                     marks are not checked against each other).
     bounds          the :class:`~sphere_servo.vision.scoring.FitBounds` of a published fit.
     max_fits        largest number of sphere-like objects fitted in one image.
+    conic_path      measure the sphere of a pinhole camera without distortion by its conic
+                    in the image (True: the fast special case), or by the small circle of
+                    its lifted edge as through any other model (False: the same sphere).
     min_area_px, min_contrast, body_chroma_tol, K, max_edge_points, coarse_step
                     the silhouette's (:class:`~sphere_servo.vision.silhouette.SilhouetteFinder`).
     chroma_tol, min_mark_px, mark_radius
@@ -190,7 +190,8 @@ class Detector:
                  max_fits: int = 8, min_area_px: float = 30.0, min_contrast: float = 25.0,
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
                  min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 100,
-                 coarse_step: int = 4, mark_radius: float = float(np.radians(9.0))):
+                 coarse_step: int = 4, mark_radius: float = float(np.radians(9.0)),
+                 conic_path: bool = True):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
             raise ValueError("colors must contain 'body'")
@@ -206,6 +207,8 @@ class Detector:
         self.geometry = geometry
         self.bounds = FitBounds() if bounds is None else bounds
         self.max_fits = int(max_fits)
+        self.conic_path = bool(conic_path)
+        self._lift = (None, None)   # (camera, its lift): a camera's table is looked up once
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'Detector':
@@ -223,17 +226,31 @@ class Detector:
         kw.setdefault('bounds', FitBounds.for_target(target))
         return cls(colors, surface, **kw)
 
+    def lift(self, camera) -> PinholeLift | ModelLift:
+        """Return how the pixels of ``camera`` are lifted (:func:`~.rays.lift_of`)."""
+        last, lift = self._lift
+        if last is not camera:
+            lift = lift_of(camera, self.conic_path)
+            self._lift = (camera, lift)
+        return lift
+
     def detect(self, image: np.ndarray, encoding: str, camera) -> Detection:
         """
-        Detect the target and its marks in ``image`` with the intrinsics ``camera``.
+        Detect the target and its marks in ``image`` seen by ``camera``.
 
         ``image``: (H, W, 3) for rgb8/bgr8, (H, W) or (H, W, 1) for mono8, uint8;
-        ``camera``: anything with px, py, u0, v0 (a :class:`CameraIntrinsics`). Raises
-        ``ValueError`` on a bad image/encoding/intrinsics; returns ``Detection(found=False,
-        not_detected=...)`` when there is no usable target (module docstring: the choice).
+        ``camera``: a :class:`~sphere_servo.core.central.CentralCamera` (a pinhole, a
+        fisheye, a unified camera: its distortion is applied), or anything with px, py, u0,
+        v0 (a pinhole without distortion). Raises ``ValueError`` on a bad
+        image/encoding/intrinsics, or a camera of another size than the image's; returns
+        ``Detection(found=False, not_detected=...)`` when there is no usable target (module
+        docstring: the choice).
         """
-        intr = camera_intrinsics(camera)
+        lift = self.lift(camera)
         img = check_image(image, encoding)
+        if lift.lifted and img.shape[:2] != (lift.camera.height, lift.camera.width):
+            raise ValueError(f'camera of {lift.camera.width}x{lift.camera.height} px for an '
+                             f'image of {img.shape[1]}x{img.shape[0]}')
         rgb = None if img.ndim == 2 else (img if encoding == 'rgb8' else img[..., ::-1])
         found = self.silhouette.candidates(img, rgb)
         if isinstance(found, NotDetected):
@@ -246,12 +263,12 @@ class Detector:
             u, v = blob.centre(s)
             if any(c.sure and _inside(c.sil, u, v) for c in accepted):
                 continue                    # a part, or another level, of a sure fit
-            sil = self.silhouette.fit(blob, img, rgb, s)
+            sil = self.silhouette.fit(blob, img, rgb, s, lift if lift.lifted else None)
             if not isinstance(sil, NotDetected):
                 (cu, cv_), _, _ = sil.ellipse
                 if not any(_inside(o, cu, cv_) for o in seen):
                     seen.append(sil)        # a sphere-like object (bounds or not)
-                sil = self._candidate(sil, img, encoding, rgb, intr)
+                sil = self._candidate(sil, img, encoding, rgb, lift)
             if isinstance(sil, NotDetected) or not sil.sure:
                 # its level may have cut into the sphere's shaded side: try the blob grown
                 # down to the level of the background around it, next
@@ -263,7 +280,7 @@ class Detector:
                     miss = sil
                 continue
             if sil.sure and sil.n_marks == len(self.mark_names):
-                return self._found(sil)     # the target: a sure fit, all its marks fit
+                return self._found(sil, lift)   # the target: a sure fit, all its marks fit
             accepted.append(sil)
         if accepted:
             # most marks, then the edge contrasted around most of the contour, then the
@@ -276,31 +293,34 @@ class Detector:
                 return Detection.missed(
                     NotDetected(Reason.AMBIGUOUS, f'{len(seen)} in view'),
                     self.marks.not_visible())
-            return self._found(best)
+            return self._found(best, lift)
         # no blob with a contrasted edge, and the frame is the body's colour and bright
         early = miss is None or _STAGE[miss.reason] <= _STAGE[Reason.LOW_CONTRAST]
         if rgb is not None and early and self.silhouette.fills_frame(rgb):
             miss = NotDetected(Reason.TOO_LARGE, 'the body fills the frame')
         return Detection.missed(miss or NotDetected(Reason.NO_BLOB), self.marks.not_visible())
 
-    def _candidate(self, sil: Silhouette, img, encoding: str, rgb, intr
+    def _candidate(self, sil: Silhouette, img, encoding: str, rgb, lift
                    ) -> '_Candidate | NotDetected':
         """Check one fitted silhouette against the bounds and measure its marks."""
         why = self.bounds.check(sil)
         if why is not None:
             return why
-        C_n = conic_pixels_to_normalized(sil.conic_px, *intr)
-        try:
-            sphere = sphere_from_conic(C_n)
-        except MeasurementError as exc:
-            return NotDetected(Reason.NOT_A_SPHERE, str(exc))
+        if sil.cone is not None:
+            C_n, sphere = sil.cone.conic, sil.cone.sphere
+        else:
+            C_n = conic_pixels_to_normalized(sil.conic_px, lift.px, lift.py, lift.u0, lift.v0)
+            try:
+                sphere = sphere_from_conic(C_n)
+            except MeasurementError as exc:
+                return NotDetected(Reason.NOT_A_SPHERE, str(exc))
         if sil.edge is not None and (sphere.quality > self.bounds.refit_quality
                                      or not self.bounds.sure(sil)):
-            sil, C_n, sphere = self._drop_foreign_arc(sil, C_n, sphere, intr)
+            sil, C_n, sphere = self._drop_foreign_arc(sil, C_n, sphere, lift)
         why = self.bounds.check(sil, sphere)
         if why is not None:
             return why
-        marks = self.marks.find(img, encoding, rgb, sphere, sil, intr)
+        marks = self.marks.find(img, encoding, rgb, sphere, sil, lift)
         q = {}
         for name, m in marks.items():
             if not m.visible:
@@ -318,19 +338,24 @@ class Detector:
         return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil))
 
     @staticmethod
-    def _drop_foreign_arc(sil: Silhouette, C_n, sphere: SphereMeasurement, intr):
+    def _drop_foreign_arc(sil: Silhouette, C_n, sphere: SphereMeasurement, lift):
         """
         Refit without a foreign arc of edge, if there is one and that makes a sphere's image.
 
-        (:func:`~sphere_servo.vision.scoring.foreign_arc`.) The conic of the other points
+        (:func:`~sphere_servo.vision.scoring.foreign_arc`.) The fit of the other points
         replaces the first one only when at least half the points remain and its quality is
         at most a third of the first one's.
         """
-        px, py, u0, v0 = intr
         E = sil.edge
-        X = np.array([(E[0] - u0) / px, (E[1] - v0) / py, np.ones(E.shape[1])])
-        X /= np.sqrt((X * X).sum(axis=0))
-        keep = foreign_arc(X, 0.5 * (px + py))
+        if sil.cone is not None:
+            X = sil.cone.rays[:, sil.cone.keep]
+            px_per_rad = float(np.median(sil.cone.scale[sil.cone.keep]))
+        else:
+            X = np.array([(E[0] - lift.u0) / lift.px, (E[1] - lift.v0) / lift.py,
+                          np.ones(E.shape[1])])
+            X /= np.sqrt((X * X).sum(axis=0))
+            px_per_rad = 0.5 * (lift.px + lift.py)
+        keep = foreign_arc(X, px_per_rad)
         if keep is None:
             return sil, C_n, sphere
         nk = int(np.count_nonzero(keep))
@@ -339,25 +364,37 @@ class Detector:
         Ek = E[:, keep]
         C_px = fit_conic(Ek[:2].T)
         ep = ellipse_params(C_px)
-        C2 = conic_pixels_to_normalized(C_px, *intr)
-        try:
-            sphere2 = sphere_from_conic(C2)
-        except MeasurementError:
-            return sil, C_n, sphere
+        cone = None
+        if sil.cone is not None:
+            cone = fit_cone(lift, Ek)
+            if isinstance(cone, NotDetected):
+                return sil, C_n, sphere
+            C2, sphere2, rms, nk = cone.conic, cone.sphere, cone.rms_px, int(cone.keep.sum())
+            Ek = Ek[:, cone.keep]
+        else:
+            C2 = conic_pixels_to_normalized(C_px, lift.px, lift.py, lift.u0, lift.v0)
+            try:
+                sphere2 = sphere_from_conic(C2)
+            except MeasurementError:
+                return sil, C_n, sphere
+            d = sampson_homogeneous(C_px, Ek)
+            rms = math.sqrt(float(d @ d) / nk)
         if ep is None or sphere2.quality > sphere.quality / 3.0:
             return sil, C_n, sphere
-        d = sampson_homogeneous(C_px, Ek)
-        rms = math.sqrt(float(d @ d) / nk)
         return (replace(sil, conic_px=C_px, rms_px=rms, n_points=nk, ellipse=ep,
-                        coverage=nk / max(sil.n_profiles, 1), edge=Ek), C2, sphere2)
+                        coverage=nk / max(sil.n_profiles, 1), edge=Ek, cone=cone), C2, sphere2)
 
     @staticmethod
-    def _found(cand: _Candidate) -> Detection:
+    def _found(cand: _Candidate, lift) -> Detection:
         sil, sphere = cand.sil, cand.sphere
         c, ax, ang = sil.ellipse
+        contour = None
+        if sil.cone is not None:
+            contour = contour_px(lift.camera, sphere.b, sil.cone.theta)
         return Detection(True, '', cand.C_n, sphere, sphere.quality, sil.rms_px,
                          (c, (2.0 * ax[0], 2.0 * ax[1]), math.degrees(ang)), cand.marks,
-                         sil.cut_by_border, sil.n_points, coverage=sil.coverage)
+                         sil.cut_by_border, sil.n_points, coverage=sil.coverage,
+                         contour_px=contour)
 
 
 def detect(image: np.ndarray, encoding: str, camera, target: Target | None = None,

@@ -1,28 +1,33 @@
 """
 The marks (no ROS): colour blobs → centres back-projected on the sphere. DESIGN.md §2.
 
-Marks are found by colour (chromaticity, configurable) in the box of the silhouette. A
-surface mark's centre is *not* its image centroid (a painted cap is foreshortened,
-DESIGN.md §2): each pixel is back-projected on the estimated sphere (eq. 11–12), weighted
-by the surface area it covers, and the mean surface normal gives the cap's centre; a cap
-cut by the limb is measured from its boundary arc instead. The CC tip P3 (a small ball off
-the surface) is the image of its centre, from the moments of its blob.
+Marks are found by colour (chromaticity, configurable) in the box of the silhouette. Their
+pixels are lifted to rays through the camera the sphere was measured with
+(:mod:`~sphere_servo.vision.rays`: ``K⁻¹`` for a pinhole, the model's lift for a fisheye or a
+catadioptric). A surface mark's centre is *not* its image centroid (a painted cap is
+foreshortened, DESIGN.md §2): each pixel's ray is back-projected on the estimated sphere
+(eq. 11–12), weighted by the surface area it covers (its solid angle over the cosine of the
+incidence), and the mean surface normal gives the cap's centre; a cap cut by the limb is
+measured from its boundary arc instead. The CC tip P3 (a small ball off the surface) is
+along the mean of its blob's rays weighted by their solid angles: the direction of a
+ball's centre, whatever the camera (its silhouette is a circle of the projection sphere
+about that direction).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+import functools
 import math
 from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from sphere_servo.core.conics import conic_from_moments, homogeneous, sampson_homogeneous
-from sphere_servo.core.geometry import GeometryError
-from sphere_servo.core.measurement import (MeasurementError, sphere_from_conic,
-                                           SphereMeasurement, unit_ray)
-from sphere_servo.core.types import Image, Vec2
-from sphere_servo.vision.caps import match_centroid, tangent_basis
+from sphere_servo.core.conics import homogeneous, sampson_homogeneous
+from sphere_servo.core.measurement import MeasurementError, SphereMeasurement
+from sphere_servo.core.types import Image, Vec3
+from sphere_servo.vision.caps import match_centroid, predicted_direction, tangent_basis
+from sphere_servo.vision.cone import limb_distance
 from sphere_servo.vision.image import chroma_test, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.silhouette import Silhouette
@@ -37,7 +42,7 @@ class Mark:
 
     name           'P1', 'P2' or 'P3'.
     uv_px          (2,) pixel of its centre (None when not visible).
-    xy_normalized  (2,) normalized image point of its centre (None when not visible).
+    ray            (3,) unit ray of its centre, camera frame (None when not visible).
     visible        its centre was measured.
     area_px        its (coverage-weighted) image area.
     partial        a surface cap cut by the limb, whose centre comes from its visible
@@ -49,7 +54,7 @@ class Mark:
 
     name: str
     uv_px: np.ndarray | None = None
-    xy_normalized: np.ndarray | None = None
+    ray: np.ndarray | None = None
     visible: bool = False
     area_px: float = 0.0
     partial: bool = False
@@ -65,9 +70,9 @@ class Mark:
     @property
     def q(self) -> np.ndarray:
         """Return the unit vector of the mark's centre (camera frame)."""
-        if not self.visible or self.xy_normalized is None:
+        if not self.visible or self.ray is None:
             raise MeasurementError(self.why)
-        return unit_ray(self.xy_normalized)
+        return self.ray.copy()
 
     @property
     def why(self) -> str:
@@ -80,9 +85,8 @@ class Mark:
 
 class Backprojection(NamedTuple):
     """
-    Image points back-projected on the estimated sphere (units of r), one value per point.
+    Rays back-projected on the estimated sphere (units of r), one value per ray ``q``.
 
-    k       ``1/‖x̄‖`` (so ``q = k·x̄`` is the unit ray).
     rho     ``‖P‖/r`` (eq. 11–12, σ = −1: the visible side).
     nn      ``‖ρq − s_n,t‖`` (1 on the sphere; less for a ray that misses it, which meets
             its closest point); None when every ray is known to hit the sphere.
@@ -90,26 +94,21 @@ class Backprojection(NamedTuple):
             ``n = (ρq − s_n,t)/nn``.
     """
 
-    k: np.ndarray
     rho: np.ndarray
     nn: np.ndarray | None
     cos_i: np.ndarray
 
 
-def on_sphere(sphere: SphereMeasurement, X: np.ndarray, hits: bool = False) -> Backprojection:
+def on_sphere(sphere: SphereMeasurement, q: np.ndarray, hits: bool = False) -> Backprojection:
     """
-    Back-project normalized image points ``X`` (3, N) = ``(x̄, 1)`` on the estimated sphere.
+    Back-project unit rays ``q`` (3, N) on the estimated sphere.
 
     Scalar rows: ``|q| = 1`` turns the 3-vector norms and dot products into ``b·q`` and
     ``s·q``. ``hits``: every ray is known to meet the sphere (pixels well inside the
     silhouette), so ``nn`` is 1 (returned as None).
     """
-    k = np.hypot(X[0], X[1])
-    np.hypot(k, 1.0, out=k)
-    np.divide(1.0, k, out=k)
     rd = sphere.r_delta
-    sq = sphere.s_nt @ X
-    sq *= k
+    sq = sphere.s_nt @ q
     bq = rd * sq                              # b = r_δ s_n,t
     root = bq * bq
     root += rd * rd - 1.0
@@ -118,7 +117,7 @@ def on_sphere(sphere: SphereMeasurement, X: np.ndarray, hits: bool = False) -> B
     rho = bq - root
     rho *= 1.0 / rd
     if hits:
-        return Backprojection(k, rho, None, sq - rho)
+        return Backprojection(rho, None, sq - rho)
     # ‖ρq − s‖² = ρ² − 2ρ s·q + ‖s‖²
     ss = float(sphere.s_nt @ sphere.s_nt)
     nn = rho * (rho - 2.0 * sq)
@@ -127,32 +126,20 @@ def on_sphere(sphere: SphereMeasurement, X: np.ndarray, hits: bool = False) -> B
     np.sqrt(nn, out=nn)
     cos_i = sq - rho
     cos_i /= nn
-    return Backprojection(k, rho, nn, cos_i)
+    return Backprojection(rho, nn, cos_i)
 
 
-def ball_centre(u: np.ndarray, v: np.ndarray, w: np.ndarray, intr) -> Vec2:
+def ball_centre(q: np.ndarray, w: np.ndarray) -> Vec3:
     """
-    Image (normalized) of a ball's centre from its filled blob.
+    Direction (unit) of a ball's centre from the rays ``q`` (3, N) of its filled blob.
 
-    Pixels ``u, v`` with weights ``w``; ``intr`` = (px, py, u0, v0). The blob's moments
-    (Sheppard-corrected, +1/12 px²) give its ellipse, whose conic is that of a sphere
-    (DESIGN.md §2), and ``b`` of :func:`sphere_from_conic` is the direction of the ball's
-    centre — unlike the blob centroid, which perspective shifts outwards (returned when
-    the moments are not a sphere's image).
+    ``w``: each pixel's coverage times its solid angle. The blob's rays fill the circle of
+    the projection sphere about the centre's direction (the ball's silhouette cone), so
+    their solid-angle mean lies along it, for any central camera — unlike the blob's image
+    centroid, which perspective shifts outwards.
     """
-    px, py, u0, v0 = intr
-    sw = w.sum()
-    cu, cv_ = np.sum(w * u) / sw, np.sum(w * v) / sw
-    du, dv = u - cu, v - cv_
-    S = np.array([[np.sum(w * du * du), np.sum(w * du * dv)],
-                  [np.sum(w * du * dv), np.sum(w * dv * dv)]]) / sw + np.eye(2) / 12.0
-    A = np.diag([1.0 / px, 1.0 / py])
-    c_n = np.array([(cu - u0) / px, (cv_ - v0) / py])
-    try:
-        b = sphere_from_conic(conic_from_moments(c_n, A @ S @ A.T)).b
-    except GeometryError:          # MeasurementError or ConicError: not a sphere's image
-        return c_n
-    return b[:2] / b[2]
+    m = q @ w
+    return m / max(float(np.sqrt(m @ m)), 1e-300)
 
 
 class MarkFinder:
@@ -202,17 +189,17 @@ class MarkFinder:
         return {n: Mark.lost(n, reason, detail) for n in self.mark_names}
 
     def find(self, img: Image, encoding: str, rgb: Image | None, sphere: SphereMeasurement,
-             sil: Silhouette, intr) -> dict:
+             sil: Silhouette, lift) -> dict:
         """
         Name → :class:`Mark` for every mark, seen in ``img``.
 
         ``rgb`` is its rgb view (None for mono8: no colour, no marks), ``sphere`` and
-        ``sil`` the sphere measured from the silhouette, ``intr`` = (px, py, u0, v0).
+        ``sil`` the sphere measured from the silhouette, ``lift`` how the camera's pixels
+        are lifted to rays (:mod:`~sphere_servo.vision.rays`).
         """
         if rgb is None:
             return self.not_visible(detail='a mono8 image has no colour')
         marks = self.not_visible(detail='no pixel of its colour on the sphere')
-        px, py, u0, v0 = intr
         H, W = img.shape[:2]
         (ecx, ecy), ax, _ = sil.ellipse
         # the CC tip can lie outside the disc; surface marks cannot
@@ -305,8 +292,10 @@ class MarkFinder:
                 Ppx = homogeneous(xx, yy)
                 Ppx[0] += ox
                 Ppx[1] += oy
+                q, w_sr = lift.pixels(Ppx[0], Ppx[1])
                 if near_limb:
-                    dsig = inside * sampson_homogeneous(C_px, Ppx)     # > 0 inside
+                    dsig = (inside * sampson_homogeneous(C_px, Ppx) if sil.cone is None
+                            else limb_distance(lift.camera, sphere, sil.cone.theta, q, Ppx))
                     dsil = np.abs(dsig)
                     # a pixel on the limb is partly background, which the unmixing (mark
                     # vs body) does not know: its mark coverage is at most its coverage by
@@ -327,32 +316,35 @@ class MarkFinder:
                                         f'{area:.1f} px < {self.min_mark_px:.0f}', area)
                 continue
             if name in self.surface_marks:
-                Kinv = np.array([[1.0 / px, 0.0, -u0 / px], [0.0, 1.0 / py, -v0 / py],
-                                 [0.0, 0.0, 1.0]])
-                xy = self.cap_centre(sphere, Kinv @ Ppx, alpha, rim, hits=not near_limb)
-                if xy is None:
+                alpha *= w_sr                   # coverage × solid angle: the rays' weights
+                ray = self.cap_centre(sphere, q, alpha, rim, hits=not near_limb)
+                if ray is None:
                     marks[name] = Mark.lost(name, Reason.MARK_UNMEASURABLE, area_px=area,
                                             partial=True) if rim is not None else \
                         Mark.lost(name, Reason.MARK_FACES_AWAY,
                                   'its centre on the sphere faces away', area)
                     continue
             else:
-                xy = ball_centre(xx + float(ox), yy + float(oy), alpha, (px, py, u0, v0))
-            uv = np.array([px * xy[0] + u0, py * xy[1] + v0])
-            marks[name] = Mark(name, uv, xy, True, area, partial=rim is not None)
+                q, w_sr = lift.pixels(xx + ox, yy + oy)
+                ray = ball_centre(q, alpha * w_sr)
+            uv = lift.project(ray)
+            if uv is None:                      # beyond the camera's field: not imaged
+                marks[name] = Mark.lost(name, Reason.MARK_FACES_AWAY,
+                                        'its centre is outside the camera field', area)
+                continue
+            marks[name] = Mark(name, uv, ray, True, area, partial=rim is not None)
         return marks
 
-    def cap_centre(self, sphere: SphereMeasurement, X: np.ndarray, w: np.ndarray,
-                   rim: np.ndarray | None = None, hits: bool = False) -> Vec2 | None:
+    def cap_centre(self, sphere: SphereMeasurement, q: np.ndarray, w: np.ndarray,
+                   rim: np.ndarray | None = None, hits: bool = False) -> Vec3 | None:
         """
-        Centre (normalized image point) of a painted cap from its pixels.
+        Measure the unit ray of a painted cap's centre from its pixels.
 
-        ``X`` (3, N) = ``(x̄, 1)``: the pixels in normalized coordinates, ``w`` their
-        coverage.
+        ``q`` (3, N): the pixels' unit rays, ``w`` their coverage times their solid angle.
 
-        Whole cap: back-project the pixels on the sphere (units of r, eq. 11–12), weight
-        each by the surface area of its footprint (``‖P‖² / (‖x̄‖³ cos i)``) and average the
-        unit normals (DESIGN.md §2, second lesson).
+        Whole cap: back-project the rays on the sphere (units of r, eq. 11–12), weight
+        each by the surface area of its footprint (``ρ² w / cos i``) and average the unit
+        normals (DESIGN.md §2, second lesson).
 
         ``rim`` (bool mask of the pixels on the cap's boundary with the body, away from the
         silhouette) is given when the cap's image touches the limb: then the visible part's
@@ -361,42 +353,43 @@ class MarkFinder:
         ``n·m = cos(mark_radius)`` on the sphere, fitted (Gauss–Newton on the unit m, weights
         cos² i for the back-projection's sensitivity, outliers — the CC stick — dropped) to
         the rim pixels' normals; when too little rim is seen for that (a small sphere),
-        from the cap's image centroid (:func:`~sphere_servo.vision.caps.match_centroid`:
-        the visible part of the cap of radius ``mark_radius`` about m, projected).
+        from the mean direction of the cap's rays
+        (:func:`~sphere_servo.vision.caps.match_centroid` with
+        :func:`~sphere_servo.vision.caps.predicted_direction`: the visible part of the cap
+        of radius ``mark_radius`` about m, seen from the camera centre).
 
-        Returns the image of ``s_n,t + m`` (m: the unit normal at the centre), or None when
-        the centre cannot be measured (it faces away from the camera, or the cap's model
-        finds no visible part).
+        Returns the direction of ``s_n,t + m`` (m: the unit normal at the centre), or None
+        when the centre cannot be measured (it faces away from the camera, or the cap's
+        model finds no visible part).
         """
-        k, rho, nn, cos_i = on_sphere(sphere, X, hits and rim is None)
+        rho, nn, cos_i = on_sphere(sphere, q, hits and rim is None)
         s_nt = sphere.s_nt
-        # Σ wa·n with n = (ρ k X − s)/nn and wa = w ρ² k³ / max(cos i, 0.1)
-        t = rho * k
-        c = t * t
-        c *= k
+        # Σ wa·n with n = (ρ q − s)/nn and wa = w ρ² / max(cos i, 0.1)
+        c = rho * rho
         c *= w
         c /= np.maximum(cos_i, 0.1)
         if nn is not None:
             c /= nn
-        m = X @ (c * t) - float(c.sum()) * s_nt
+        m = q @ (c * rho) - float(c.sum()) * s_nt
         m /= max(math.sqrt(float(m @ m)), 1e-300)
         if rim is not None:
             # near the limb: the rim's circle (outliers, e.g. the CC stick, dropped) or, when
-            # too little rim is seen (a small sphere), the cap's image centroid (caps)
-            m_rim = self._fit_rim(m, X, k, rho, nn, cos_i, s_nt, rim)
+            # too little rim is seen (a small sphere), the cap's mean direction (caps)
+            m_rim = self._fit_rim(m, q, rho, nn, cos_i, s_nt, rim)
             if m_rim is None and self._cut_by(sphere, m) < self.max_cut:
-                sw = float(w.sum())
-                m_rim = match_centroid(sphere, m, self.mark_radius,
-                                       np.array([float(X[0] @ w) / sw, float(X[1] @ w) / sw]))
+                F = tangent_basis(sphere.b)       # gnomonic coordinates about b
+                d = F @ (q @ w)
+                m_rim = match_centroid(sphere, m, self.mark_radius, d[:2] / d[2],
+                                       functools.partial(predicted_direction, frame=F))
                 if m_rim is not None and self._cut_by(sphere, m_rim) >= self.max_cut:
                     m_rim = None        # a cap mostly hidden: its centroid says too little
             if m_rim is None:
                 return None
             m = m_rim
         P = s_nt + m
-        if P[2] <= 0 or float(m @ P) >= 0:      # the centre faces away: not measurable
+        if float(m @ P) >= 0:                   # the centre faces away: not measurable
             return None
-        return P[:2] / P[2]
+        return P / math.sqrt(float(P @ P))
 
     def _cut_by(self, sphere: SphereMeasurement, m: np.ndarray) -> float:
         """
@@ -408,12 +401,12 @@ class MarkFinder:
         beta = math.acos(max(-1.0, min(1.0, -float(m @ sphere.b))))
         return beta + self.mark_radius - math.acos(sphere.r_delta)
 
-    def _fit_rim(self, m, X, k, rho, nn, cos_i, s_nt, rim) -> np.ndarray | None:
+    def _fit_rim(self, m, q, rho, nn, cos_i, s_nt, rim) -> np.ndarray | None:
         """Fit the unit normal m at the cap's centre to its rim pixels (:meth:`cap_centre`)."""
         if np.count_nonzero(rim) < 8:
             return None
         ir = 1.0 / nn[rim]
-        nb = X[:, rim] * (rho[rim] * k[rim] * ir) - s_nt[:, None] * ir
+        nb = q[:, rim] * (rho[rim] * ir) - s_nt[:, None] * ir
         cb = np.maximum(cos_i[rim], 0.05)
         wb = cb * cb
         cosr = self.cos_mark

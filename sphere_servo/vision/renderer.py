@@ -1,8 +1,13 @@
 """
 Ray-casting renderer of the marked targets (no ROS). DESIGN.md §1, §2, §5.
 
-Every pixel ``(u, v)`` is a ray ``x̄ = K⁻¹ (u, v, 1)`` from the camera centre (camera optical
-frame: z forward, x right, y down). The ray is intersected with
+Every pixel ``(u, v)`` is a ray from the camera centre (camera optical frame: z forward, x
+right, y down): ``x̄ = K⁻¹ (u, v, 1)`` for a pinhole without distortion, else the camera
+model's lift (:mod:`~sphere_servo.core.central`: plumb_bob, equidistant fisheye, unified
+catadioptric), so a fisheye or catadioptric image is exact to the border of its field; the
+lifted rays are computed once per camera (:func:`~sphere_servo.vision.rays.pixel_rays`).
+Pixels no valid ray reaches (outside a model's image circle) are black. The ray is
+intersected with
 
 - the body: a sphere S(O, r) or, for the balloon, the ellipsoid with semi-axes ``target.axes``
   (target frame ``o``), shaded Lambertian ``albedo · gain · (ambient + diffuse · max(0, n·l))``
@@ -16,7 +21,9 @@ frame: z forward, x right, y down). The ray is intersected with
 
 Only the bounding box of the target's image is traced; pixels where the label (background,
 body, mark, stick, tip) changes between neighbours are re-traced with 16 stratified
-sub-samples (box-filter anti-aliasing, 16 distinct offsets along each axis). The background
+sub-samples (box-filter anti-aliasing, 16 distinct offsets along each axis; through a model,
+a sub-sample's ray is its pixel's to first order, ``q + ∂q/∂u δu + ∂q/∂v δv``, and exact on
+the edge of the image circle). The background
 (:mod:`~sphere_servo.vision.backgrounds`) is a deterministic smooth gradient with
 low-frequency texture, clutter, a two-level checkerboard or noise texture, or a given image,
 with distractor spheres and discs drawn into it. Optional Gaussian noise (grey levels),
@@ -29,9 +36,12 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.conics import conic_bbox, conic_normalized_to_pixels, sphere_silhouette
+from sphere_servo.core.small_circle import circle_rays
 from sphere_servo.core.targets import CC, Target
 from sphere_servo.vision.backgrounds import draw_distractors, make_background
+from sphere_servo.vision.rays import pixel_rays
 
 # labels of what a ray hits first
 MISS, BODY, MARK1, MARK2, STICK, TIP = 0, 1, 2, 3, 4, 5
@@ -46,7 +56,9 @@ class Renderer:
     """
     Ray-cast ``rgb8`` images of ``target`` seen by ``camera``.
 
-    camera      true intrinsics (a model with plumb_bob distortion is rendered distorted).
+    camera      the true camera: a :class:`~sphere_servo.core.central.CentralCamera` (a
+                pinhole, distorted by its plumb_bob coefficients, a fisheye, a unified
+                camera).
     target      :class:`~sphere_servo.core.targets.Target` (special, CC or balloon): its
                 colours and cap radius are what is painted.
     background  'gradient' (default), 'clutter', 'flat', 'checker', 'noise' or an
@@ -54,7 +66,8 @@ class Renderer:
                 ``levels`` (lo, hi) and ``texture_px`` set the checkerboard and the noise
                 texture.
     distractors :class:`~sphere_servo.vision.backgrounds.Distractor` spheres and discs
-                (camera frame), drawn behind the target with the construction's light.
+                (camera frame), drawn behind the target with the construction's light
+                (a pinhole without distortion only).
     light_dir   (3,) direction *towards* the light in the camera optical frame (a light on
                 the camera, slightly up-left, by default), normalized internally.
     ambient, diffuse, gain   shading ``gain · (ambient + diffuse · max(0, n·l))``; change
@@ -66,14 +79,14 @@ class Renderer:
     stick_color rgb8 colour of the CC stick.
     """
 
-    def __init__(self, camera: CameraIntrinsics, target: Target, *, background='gradient',
+    def __init__(self, camera: CentralCamera, target: Target, *, background='gradient',
                  light_dir=(-0.35, -0.45, -0.82), ambient: float = 0.55,
                  diffuse: float = 0.45, gain: float = 1.0, noise_sigma: float = 0.0,
                  blur_sigma: float = 0.0, seed: int = 0, tip_radius: float | None = None,
                  stick_radius: float | None = None, stick_color=(200, 200, 190),
                  levels=(40, 70), texture_px: float = 24.0, distractors=()):
-        if not isinstance(camera, CameraIntrinsics):
-            raise TypeError(f'camera must be CameraIntrinsics, got {type(camera).__name__}')
+        if not isinstance(camera, CentralCamera):
+            raise TypeError(f'camera must be a CentralCamera, got {type(camera).__name__}')
         if not isinstance(target, Target):
             raise TypeError(f'target must be a Target, got {type(target).__name__}')
         for name, val in (('ambient', ambient), ('diffuse', diffuse), ('gain', gain),
@@ -90,7 +103,12 @@ class Renderer:
         self.background = make_background(background, self.W, self.H,
                                           np.random.default_rng(seed), levels=levels,
                                           texture_px=texture_px)
+        # a pinhole without distortion: separable normalized coordinates, else lifted rays
+        self._lifted = not (isinstance(camera, CameraIntrinsics) and not camera.has_distortion)
         if distractors:
+            if self._lifted:
+                raise ValueError('distractors are drawn for a pinhole camera without '
+                                 f'distortion only, not a {type(camera).__name__}')
             self.background = draw_distractors(self.background, camera, distractors,
                                                self.light_dir, self.ambient, self.diffuse,
                                                self.gain)
@@ -111,18 +129,21 @@ class Renderer:
         self._caps = [(lab, oP / np.linalg.norm(oP)) for lab, oP in caps]
         self._cos_mark = float(np.cos(target.mark_radius))
         self._bound_radius = float(np.max(self.axes))
-        # normalized coordinates of every pixel centre, (H, W) each
-        v, u = np.mgrid[0:self.H, 0:self.W]
-        xy = camera.pixel_to_normalized(np.column_stack([u.ravel(), v.ravel()]))
-        self._X = xy[:, 0].reshape(self.H, self.W).astype(np.float32)
-        self._Y = xy[:, 1].reshape(self.H, self.W).astype(np.float32)
+        if self._lifted:
+            self._rays = pixel_rays(camera)
+            self.background[~self._rays.valid] = 0     # outside the image circle: black
+        else:
+            # normalized coordinates of the pixel centres: a (1, W) row, an (H, 1) column
+            self._X = ((np.arange(self.W) - camera.u0) / camera.px).astype(np.float32)[None]
+            self._Y = ((np.arange(self.H) - camera.v0) / camera.py).astype(np.float32)[:, None]
 
     # --- ray casting ---------------------------------------------------------------------
-    def _trace(self, x: np.ndarray, y: np.ndarray, cMo: pin.SE3):
+    def _trace(self, x: np.ndarray, y: np.ndarray, z, cMo: pin.SE3):
         """
-        Trace rays ``(x, y, 1)`` (normalized coordinates).
+        Trace rays ``d = (x, y, z)`` from the camera centre (any length; NaN: no ray).
 
-        ``x``, ``y``: broadcastable arrays, e.g. a (1, w) row and an (h, 1) column. Returns
+        ``x``, ``y``, ``z``: broadcastable arrays, e.g. a (1, w) row and an (h, 1) column of
+        normalized coordinates with ``z = 1.0``, or (h, w) lifted rays. Returns
         ``(label uint8, f float32)`` of the broadcast shape: what each ray hits first and
         its brightness ``gain · (ambient + diffuse · max(0, n·l))`` (meaningless where the
         label is MISS).
@@ -131,31 +152,31 @@ class Renderer:
         t = np.asarray(cMo.translation, dtype=float)
         light = self.light_dir / np.linalg.norm(self.light_dir)
         if self.target.is_sphere:
-            # camera frame: |s d − O|² = r², d = (x, y, 1); s = (d·O − √disc)/‖d‖².
+            # camera frame: |s d − O|² = r², d = (x, y, z); s = (d·O − √disc)/‖d‖².
             # Python-float coefficients keep float32 inputs in float32 (NEP 50).
             r = float(self.target.radius)
             tx, ty, tz = (float(v) for v in t)
-            dO = x * tx + y * ty + tz
-            dd = x * x + y * y + 1.0
+            dO = x * tx + y * ty + z * tz
+            dd = x * x + y * y + z * z
             disc = dO * dO - dd * float(t @ t - r * r)
             hit = (disc > 0) & (dO > 0)
             s = (dO - np.sqrt(np.maximum(disc, 0.0))) / dd
             # r n = s d − O: the Lambert term and the marks are affine in s
             lx, ly, lz = (float(v) for v in light)
-            lam = (s * (x * lx + y * ly + lz) - float(t @ light)) * (1.0 / r)
+            lam = (s * (x * lx + y * ly + z * lz) - float(t @ light)) * (1.0 / r)
             label = hit.astype(np.uint8)      # BODY where hit
             for lab, m_o in self._caps:
                 m = R @ m_o
                 mx, my, mz = (float(v) for v in m)
-                on = (s * (x * mx + y * my + mz)) >= float(r * self._cos_mark + t @ m)
+                on = (s * (x * mx + y * my + z * mz)) >= float(r * self._cos_mark + t @ m)
                 label[on & hit] = lab
         else:
             # ellipsoid, in the target frame scaled to the unit sphere: p' = c' + s d'
             co = (-(R.T @ t) / self.axes).tolist()
-            Rs = (R.T / self.axes[:, None]).tolist()   # d' = Rs (x, y, 1)
-            dx = Rs[0][0] * x + Rs[0][1] * y + Rs[0][2]
-            dy = Rs[1][0] * x + Rs[1][1] * y + Rs[1][2]
-            dz = Rs[2][0] * x + Rs[2][1] * y + Rs[2][2]
+            Rs = (R.T / self.axes[:, None]).tolist()   # d' = Rs (x, y, z)
+            dx = Rs[0][0] * x + Rs[0][1] * y + Rs[0][2] * z
+            dy = Rs[1][0] * x + Rs[1][1] * y + Rs[1][2] * z
+            dz = Rs[2][0] * x + Rs[2][1] * y + Rs[2][2] * z
             a = dx * dx + dy * dy + dz * dz
             b = co[0] * dx + co[1] * dy + co[2] * dz
             disc = b * b - a * float(np.dot(co, co) - 1.0)
@@ -179,16 +200,16 @@ class Renderer:
         shade = np.maximum(lam, 0.0)
         if self.target.kind == CC:
             depth = np.where(hit, s, np.float32(np.inf))
-            label, shade = self._trace_cc(x, y, cMo, label, depth, shade)
+            label, shade = self._trace_cc(x, y, z, cMo, label, depth, shade)
         f = (self.gain * (self.ambient + self.diffuse * shade)).astype(np.float32)
         return label, f
 
-    def _trace_cc(self, x, y, cMo, label, depth, shade):
+    def _trace_cc(self, x, y, z, cMo, label, depth, shade):
         """
         Trace the stick (cylinder P1→P3) and the tip ball at P3 of the CC target.
 
         Depth-tested, in the camera frame: ``depth`` is the parameter s of the camera ray
-        ``s (x, y, 1)`` at the body hit (∞ on a miss). Returns the updated
+        ``s (x, y, z)`` at the body hit (∞ on a miss). Returns the updated
         ``(label, shade)``.
 
         On the separable pixel grid (``x`` a (1, w) row, ``y`` an (h, 1) column) each part is
@@ -211,7 +232,7 @@ class Renderer:
             rows, cols = win
             xs, ys = (x[:, cols], y[rows, :]) if grid else (x, y)
             sub = (rows, cols) if grid else Ellipsis
-            part(xs, ys, A, B, light, label[sub], shade[sub], depth[sub])
+            part(xs, ys, z, A, B, light, label[sub], shade[sub], depth[sub])
         return label, shade
 
     @staticmethod
@@ -241,7 +262,7 @@ class Renderer:
             return None
         return slice(r0, r1), slice(c0, c1)
 
-    def _trace_tip(self, x, y, A, B, light, label, shade, depth):
+    def _trace_tip(self, x, y, z, A, B, light, label, shade, depth):
         """
         Trace the tip ball ``|s d − B|² = ρ²``.
 
@@ -251,17 +272,17 @@ class Renderer:
         rho = self.tip_radius
         B0, B1, B2 = B.tolist()
         lx, ly, lz = light.tolist()
-        dd = x * x + y * y + 1.0
-        dB = x * B0 + y * B1 + B2
+        dd = x * x + y * y + z * z
+        dB = x * B0 + y * B1 + z * B2
         disc = dB * dB - dd * float(B @ B - rho * rho)
         s = (dB - np.sqrt(np.maximum(disc, 0.0))) / dd
         on = (disc > 0) & (s > 0) & (s < depth)
-        lam = (s * (x * lx + y * ly + lz) - float(B @ light)) * (1.0 / rho)
+        lam = (s * (x * lx + y * ly + z * lz) - float(B @ light)) * (1.0 / rho)
         label[on] = TIP
         shade[on] = np.maximum(np.broadcast_to(lam, on.shape)[on], 0.0)
         depth[on] = np.broadcast_to(s, on.shape)[on]
 
-    def _trace_stick(self, x, y, A, B, light, label, shade, depth):
+    def _trace_stick(self, x, y, z, A, B, light, label, shade, depth):
         """
         Trace the stick: the cylinder of axis ``A + σ w``, radius ρ, σ ∈ [0, L].
 
@@ -273,8 +294,8 @@ class Renderer:
         rho = self.stick_radius
         w0, w1, w2 = w.tolist()
         lx, ly, lz = light.tolist()
-        dw = x * w0 + y * w1 + w2
-        mx, my, mz = x - dw * w0, y - dw * w1, 1.0 - dw * w2
+        dw = x * w0 + y * w1 + z * w2
+        mx, my, mz = x - dw * w0, y - dw * w1, z - dw * w2
         k0, k1, k2 = (-A + (A @ w) * w).tolist()      # −A projected ⟂ w
         aa = np.maximum(mx * mx + my * my + mz * mz, 1e-30)
         bb = mx * k0 + my * k1 + mz * k2
@@ -283,32 +304,34 @@ class Renderer:
         sig = s * dw - float(A @ w)             # (s d − A)·w
         on = (disc > 0) & (s > 0) & (s < depth) & (sig >= 0) & (sig <= float(L))
         # normal = (s d − A − σ w)/ρ; its dot with the light
-        lam = (s * (x * lx + y * ly + lz) - float(A @ light) - sig * float(w @ light)) \
+        lam = (s * (x * lx + y * ly + z * lz) - float(A @ light) - sig * float(w @ light)) \
             * (1.0 / rho)
         label[on] = STICK
         shade[on] = np.maximum(lam[on], 0.0)
 
     # --- image -----------------------------------------------------------------------
+    def _parts(self, cMo: pin.SE3) -> list:
+        """(centre in the camera frame, radius) of balls that hold every part of the target."""
+        parts = [(np.asarray(cMo.translation, dtype=float), self._bound_radius)]
+        if self.target.kind == CC:
+            oP1, oP2 = self.target.oP1, self.target.oP2
+            parts.append((cMo.act(oP2), self.tip_radius))
+            parts.append((cMo.act(0.5 * (oP1 + oP2)),
+                          self.stick_radius + 0.5 * np.linalg.norm(oP2 - oP1)))
+        return parts
+
     def _bbox(self, cMo: pin.SE3):
         """
         Find the pixel box ``(u0, u1, v0, v1)`` (half-open, clipped) of the target's image.
 
-        ``None`` if nothing is visible; the whole image when the bounding sphere is not
-        entirely in front of the camera.
+        ``None`` if nothing is visible; the whole image when a part's bounding ball is not
+        entirely in front of a pinhole, or not entirely in a model's field.
         """
-        cO = np.asarray(cMo.translation, dtype=float)
-        parts = [(cO, self._bound_radius)]
-        if self.target.kind == CC:
-            parts.append((cMo.act(self.target.oP2), self.tip_radius))
-            parts += [(cMo.act(self.target.oP1 + f * (self.target.oP2 - self.target.oP1)),
-                       self.stick_radius + 0.5 * np.linalg.norm(self.target.oP2
-                                                                - self.target.oP1))
-                      for f in (0.5,)]
+        if self._lifted:
+            return self._bbox_lifted(cMo)
         full = (0, self.W, 0, self.H)
-        if self.camera.has_distortion:
-            return full
         boxes = []
-        for c, rad in parts:
+        for c, rad in self._parts(cMo):
             dist = np.linalg.norm(c)
             if dist <= rad * 1.0001 or c[2] <= rad * 1.0001:
                 if c[2] + rad <= 0:
@@ -320,6 +343,35 @@ class Renderer:
             if bb is None:
                 return full
             boxes.append(bb)
+        return self._clip(boxes)
+
+    def _bbox_lifted(self, cMo: pin.SE3):
+        """
+        :meth:`_bbox` through a camera model: the box of each ball's projected silhouette.
+
+        The silhouette's cone (axis ``c/‖c‖``, half-angle ``asin(rad/‖c‖)``) is sampled at
+        256 rays; the model maps the cap inside it one-to-one when the cone and its axis lie
+        in the field, and the box of the samples is widened by 2 px for the arcs between
+        them. A cone not in the field: the whole image.
+        """
+        full = (0, self.W, 0, self.H)
+        cam = self.camera
+        boxes = []
+        for c, rad in self._parts(cMo):
+            dist = float(np.linalg.norm(c))
+            if dist <= rad * 1.0001:
+                return full
+            b = c / dist
+            rays = np.vstack([b, circle_rays(b, float(np.arcsin(rad / dist)), 256)])
+            if not cam.valid(rays).all():
+                return full
+            uv = cam.project(rays)
+            boxes.append((uv[:, 0].min() - 2.0, uv[:, 0].max() + 2.0, uv[:, 1].min() - 2.0,
+                          uv[:, 1].max() + 2.0))
+        return self._clip(boxes)
+
+    def _clip(self, boxes):
+        """Return the union of the boxes (x0, x1, y0, y1), as whole pixels on the image."""
         if not boxes:
             return None
         x0 = min(b[0] for b in boxes)
@@ -331,6 +383,32 @@ class Renderer:
         if u0 >= u1 or v0 >= v1:
             return None
         return u0, u1, v0, v1
+
+    def _sub_rays(self, eu: np.ndarray, ev: np.ndarray):
+        """
+        Rays (x, y, z), each (n, 16), of the 16 sub-samples of the pixels ``(eu, ev)``.
+
+        Through a model: first order about the pixel's ray, exact (the model's lift) for a
+        pixel on the edge of the image circle.
+        """
+        cam = self.camera
+        if not self._lifted:
+            xs = ((eu[:, None] + _SUB_X[None, :] - cam.u0) / cam.px).astype(np.float32)
+            ys = ((ev[:, None] + _SUB_Y[None, :] - cam.v0) / cam.py).astype(np.float32)
+            return xs, ys, 1.0
+        T = self._rays
+        out = []
+        for k, comp in enumerate((T.x, T.y, T.z)):
+            out.append(comp[ev, eu][:, None] + T.du[k, ev, eu][:, None] * _SUB_X[None, :]
+                       + T.dv[k, ev, eu][:, None] * _SUB_Y[None, :])
+        rim = T.rim[ev, eu]
+        if rim.any():
+            uu = eu[rim][:, None] + _SUB_X[None, :]
+            vv = ev[rim][:, None] + _SUB_Y[None, :]
+            q = cam.lift_where(np.column_stack([uu.ravel(), vv.ravel()])).rays
+            for k in range(3):
+                out[k][rim] = q[:, k].reshape(uu.shape)
+        return tuple(out)
 
     def render(self, cMo: pin.SE3) -> np.ndarray:
         """
@@ -346,11 +424,12 @@ class Renderer:
         box = self._bbox(cMo)
         if box is not None:
             u0, u1, v0, v1 = box
-            if self.camera.has_distortion:
-                X, Y = self._X[v0:v1, u0:u1], self._Y[v0:v1, u0:u1]
+            if self._lifted:
+                T = self._rays
+                X, Y, Z = T.x[v0:v1, u0:u1], T.y[v0:v1, u0:u1], T.z[v0:v1, u0:u1]
             else:             # separable: a (1, w) row and an (h, 1) column
-                X, Y = self._X[0:1, u0:u1], self._Y[v0:v1, 0:1]
-            lab, f = self._trace(X, Y, cMo)
+                X, Y, Z = self._X[:, u0:u1], self._Y[v0:v1], 1.0
+            lab, f = self._trace(X, Y, Z, cMo)
             hit = lab != MISS
             # per-channel shaded colour f·albedo, uint8 (rounded, saturated)
             chans = [cv2.convertScaleAbs(f, alpha=float(self.albedo[BODY, c]))
@@ -374,17 +453,7 @@ class Renderer:
             edge[:, :-1] |= du
             ev, eu = np.nonzero(edge)
             if ev.size:
-                uu = (eu + u0)[:, None] + _SUB_X[None, :]
-                vv = (ev + v0)[:, None] + _SUB_Y[None, :]
-                cam = self.camera
-                if cam.has_distortion:
-                    xy = cam.pixel_to_normalized(np.column_stack([uu.ravel(), vv.ravel()]))
-                    xs = xy[:, 0].reshape(uu.shape).astype(np.float32)
-                    ys = xy[:, 1].reshape(uu.shape).astype(np.float32)
-                else:
-                    xs = ((uu - cam.u0) / cam.px).astype(np.float32)
-                    ys = ((vv - cam.v0) / cam.py).astype(np.float32)
-                slab, sf = self._trace(xs, ys, cMo)
+                slab, sf = self._trace(*self._sub_rays(eu + u0, ev + v0), cMo)
                 # mean colour over the sub-samples: Σ_k (Σ f on label k) albedo_k / 16
                 # + (fraction missed) · background
                 acc = (slab == MISS).mean(axis=1, dtype=np.float32)[:, None] \

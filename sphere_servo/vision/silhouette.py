@@ -11,12 +11,17 @@ The sphere's silhouette (no ROS): candidate blob → sub-pixel edge → conic. D
    unit-spaced samples ``o_j = −K … K`` (exact for a box-filtered or blurred straight edge;
    robust to the shading gradient because the levels are taken just inside and outside).
 4. Conic fit to the edge points (algebraic, Hartley-normalized, Sampson-reweighted,
-   outliers — mark notches, the CC stick — rejected), in pixels.
+   outliers — mark notches, the CC stick — rejected), in pixels; or, through a camera model
+   (a fisheye, a catadioptric, a distorted pinhole: their silhouettes are not conics), the
+   sphere's cone fitted to the lifted edge points (:mod:`~sphere_servo.vision.cone`), the
+   pixel conic of its points then only drawing it.
 
-Everything here is in pixels and assumes no camera model: the detector maps the conic to
-rays. :meth:`SilhouetteFinder.candidates` lists the blobs, and :meth:`SilhouetteFinder.fit`
-gives for one a :class:`Silhouette` (with the figures the detector scores it by: residual,
-edge coverage, contrast) or a :class:`~sphere_servo.vision.reasons.NotDetected` whose
+Steps 1–3 are in pixels and assume no camera model (a silhouette through any central
+camera is a smooth oval that a coarse ellipse follows within a pixel, well inside the edge
+profiles); the detector maps the conic to rays. :meth:`SilhouetteFinder.candidates` lists
+the blobs, and :meth:`SilhouetteFinder.fit` gives for one a :class:`Silhouette` (with the
+figures the detector scores it by: residual, edge coverage, contrast) or a
+:class:`~sphere_servo.vision.reasons.NotDetected` whose
 :class:`~sphere_servo.vision.reasons.Reason` says why.
 """
 from __future__ import annotations
@@ -32,6 +37,7 @@ from sphere_servo.core.conics import (conic_from_rotated_rect, Ellipse, ellipse_
                                       fit_conic_homogeneous, homogeneous, sampson_homogeneous)
 from sphere_servo.core.types import Conic, Image
 from sphere_servo.vision.blobs import Blob, BlobFinder, coarse_v, ELLIPTICAL
+from sphere_servo.vision.cone import ConeFit, fit_cone
 from sphere_servo.vision.image import chroma_test, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
 
@@ -58,6 +64,8 @@ class Silhouette:
     contrast       median step of V across the edge (grey levels).
     edge           (3, n) the kept edge points, homogeneous pixels ``(u, v, 1)``.
     n_profiles     edge profiles on the image.
+    cone           the sphere's :class:`~sphere_servo.vision.cone.ConeFit` through a camera
+                   model (None: the conic path; ``conic_px`` is then the fit).
     """
 
     conic_px: Conic
@@ -70,6 +78,7 @@ class Silhouette:
     contrast: float = float('nan')
     edge: np.ndarray | None = None
     n_profiles: int = 0
+    cone: ConeFit | None = None
 
 
 @dataclass(frozen=True)
@@ -287,14 +296,15 @@ class SilhouetteFinder:
         y *= y
         return (y @ w) < 0.0
 
-    def fit(self, blob: Blob, img: Image, rgb: Image | None, s: int
+    def fit(self, blob: Blob, img: Image, rgb: Image | None, s: int, lift=None
             ) -> Silhouette | NotDetected:
         """
         Fit the sub-pixel silhouette of one blob found at step ``s``.
 
         Its free contour (off the image border; at least ``MIN_FREE_CONTOUR`` of it) and,
         in colour, only the points whose inside is body-coloured give the coarse ellipse
-        (:meth:`_fit_blob`).
+        (:meth:`_fit_blob`). ``lift``: a :class:`~sphere_servo.vision.rays.ModelLift` to
+        fit the sphere's cone through (None: the conic in pixels).
         """
         H, W = img.shape[:2]
         free = blob.contour[blob.free]
@@ -321,10 +331,10 @@ class SilhouetteFinder:
                 return NotDetected(Reason.NOT_BODY_COLOURED)
             free = free[body]
         return self._fit_blob(free.astype(np.float32) * s, img, rgb, s, W, H, blob.cut,
-                              blob.threshold)
+                              blob.threshold, lift)
 
     def _fit_blob(self, free: np.ndarray, img, rgb, s: int, W: int, H: int, cut: bool,
-                  thr: float) -> Silhouette | NotDetected:
+                  thr: float, lift=None) -> Silhouette | NotDetected:
         """
         Fit the sub-pixel ellipse of a blob from its free contour points.
 
@@ -445,6 +455,8 @@ class SilhouetteFinder:
         E[:2] += Gg[:2]
         E[2] = 1.0
         sc = 2.0 / math.sqrt(a0 * a0 + a1 * a1)     # Hartley scale of the coarse ellipse
+        if lift is not None:
+            return self._fit_cone(lift, E, cx, cy, sc, cut, thr, N, med_contrast)
         C = fit_conic_homogeneous(E, cx, cy, sc)
         for _ in range(3):
             d = sampson_homogeneous(C, E)
@@ -467,3 +479,18 @@ class SilhouetteFinder:
             return NotDetected(Reason.NOT_ELLIPTICAL, 'the fitted conic')
         rms = math.sqrt(float(d @ d) / len(d))
         return Silhouette(C, rms, len(d), ep, cut, thr, len(d) / N, med_contrast, E, N)
+
+    @staticmethod
+    def _fit_cone(lift, E: np.ndarray, cx: float, cy: float, sc: float, cut: bool,
+                  thr: float, N: int, med_contrast: float) -> Silhouette | NotDetected:
+        """Fit the sphere's cone through a camera model to the edge points ``E`` (3, n)."""
+        cone = fit_cone(lift, E)
+        if isinstance(cone, NotDetected):
+            return cone
+        Ek = E[:, cone.keep]
+        C = fit_conic_homogeneous(Ek, cx, cy, sc)     # drawn, and the inside of the image
+        ep = ellipse_params(C)
+        if ep is None:
+            return NotDetected(Reason.NOT_ELLIPTICAL, 'the conic of the edge')
+        nk = Ek.shape[1]
+        return Silhouette(C, cone.rms_px, nk, ep, cut, thr, nk / N, med_contrast, Ek, N, cone)
