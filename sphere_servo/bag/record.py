@@ -50,7 +50,7 @@ DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measuremen
                   'arm_sim/markers']
 # never recorded by --all (as ros2 bag record --all)
 EXCLUDED = {'/rosout', '/parameter_events'}
-DRAIN_IDLE = 0.05   # s: the drain ends when the subscriptions stay empty this long
+DRAIN_IDLE = 0.2    # s: the drain ends when the subscriptions stay empty this long
 DRAIN_LIMIT = 0.5   # s: and at the latest after this
 _CUT = {'ns': None}  # wall time of the interrupt (set by the signal handler)
 
