@@ -186,13 +186,10 @@ def _lockstep_run(launch, probe):
         probe.step(v)
         if i == 2:  # NaN: clock advances, the arm holds still
             assert np.allclose(probe.oMc().homogeneous, before.homogeneous, atol=1e-12)
-    probe.spin(1.2)  # longer than idle_republish_period: only copies of the last may come
-    seen = [im for im in probe.images if _stamp(im) > t_first]
-    stamps = sorted({_stamp(im) for im in seen})
-    assert len(stamps) == len(twists), stamps
-    new = [next(im for im in seen if _stamp(im) == t) for t in stamps]
-    # a frame waiting for its command is re-sent unchanged
-    assert all(bytes(im.data) == bytes(new[stamps.index(_stamp(im))].data) for im in seen)
+    probe.spin(1.2)  # longer than idle_republish_period: nothing more may come (no servo)
+    new = [im for im in probe.images if _stamp(im) > t_first]
+    stamps = [_stamp(im) for im in new]
+    assert len(new) == len(twists), stamps
     assert np.allclose(np.diff(stamps), DT, atol=1e-6)
     assert 'camera twist = [nan' in proc.log() and 'is not finite' in proc.log()
     assert proc.stop() == 0

@@ -32,7 +32,10 @@ def test_lockstep_one_frame_per_command(lockstep):
     assert first.image.shape == (120, 160, 3) and sim.republish_due
     q0 = first.q
     out = sim.on_command([0.02, 0.0, 0.03, 0.0, 0.0, 0.1])
-    assert out.valid and sim.republish_due  # the new frame, until its command
+    assert out.valid and not sim.republish_due
+    sim.on_servo_enabled(True)  # a servo drives: a frame it may have lost is sent again
+    assert sim.republish_due
+    sim.on_servo_enabled(False)
     assert out.frame.t == pytest.approx(START_TIME + DT, abs=1e-12)
     assert np.any(out.frame.q != q0) and np.any(out.frame.qdot)
     # the frame shows the arm's state: its pose is the forward kinematics of its q

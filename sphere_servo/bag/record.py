@@ -13,8 +13,9 @@ only queues bytes. The service ``/recorder/ready`` (std_srvs/Trigger) answers su
 every topic asked for is subscribed and matched with each of its publishers (the launcher
 waits for it before the run begins: under load, discovering a node's topics can take
 seconds); otherwise its message names what is still missing. ``/recorder/idle`` answers
-success once nothing new has arrived for ``--idle-quiet`` s (3.5 by default, longer than Fast
-DDS's 3 s heartbeat: a supervisor that stops a run can wait for it, so that what the loaded
+success once nothing new (a copy of a topic's last message and the 1 Hz ``/diagnostics``
+are not) has arrived for ``--idle-quiet`` s (3.5 by default, longer than Fast DDS's 3 s
+heartbeat: a supervisor that stops a run can wait for it, so that what the loaded
 middleware delivers late is in the bag before it interrupts the recorder).
 
 Losing little: the writer commits at the latest 0.5 s after a message was written (MCAP:
@@ -50,6 +51,8 @@ DEFAULT_TOPICS = ['camera/image_raw', 'camera/camera_info', 'detector/measuremen
                   'arm_sim/markers']
 # never recorded by --all (as ros2 bag record --all)
 EXCLUDED = {'/rosout', '/parameter_events'}
+# published at 1 Hz whatever happens: recorded, but never "something new" for ~/idle
+HEARTBEATS = {'/diagnostics'}
 DRAIN_IDLE = 0.2    # s: the drain ends when the subscriptions stay empty this long
 DRAIN_LIMIT = 0.5   # s: and at the latest after this
 _CUT = {'ns': None}  # wall time of the interrupt (set by the signal handler)
@@ -165,7 +168,8 @@ class BagSink:
 
     def put(self, handle: _Topic, stamp_ns: int, data: bytes, sent_ns: int = 0) -> None:
         self.received += 1
-        if self._prev.get(handle.name) != data:  # (an idle lockstep arm_sim re-publishes)
+        # not new: a copy (an idle lockstep arm_sim re-publishes) or a heartbeat
+        if handle.name not in HEARTBEATS and self._prev.get(handle.name) != data:
             self.fresh += 1
             self.last_fresh = time.monotonic()
             self._prev[handle.name] = data

@@ -11,11 +11,12 @@ Clock modes (``clock_mode``):
   simulation one period under the last command; a command only replaces that command.
 - ``lockstep``: each command advances the simulation exactly one period and yields exactly
   one frame (an invalid or refused command advances the clock with the arm held still, so a
-  loop never stalls). The latest frame (the first, the one after a jump, the one after a
-  command) is *re-published* unchanged (same stamp) while no command follows it
-  (:attr:`ArmSimCore.waiting`), so a subscriber that connects late still gets it, and a
-  pipeline that lost the frame (a node restarted) gets it again: the servo answers a stamp
-  once, so the copies step nothing.
+  loop never stalls). The first frame, and the one after a jump, is *re-published*
+  unchanged (same stamp) until the next command arrives, so a subscriber that connects late
+  still gets it; so is the frame after a command while a servo is enabled
+  (:attr:`ArmSimCore.republish_due`), so that a pipeline that lost it (a node restarted)
+  gets it again: the servo answers a stamp once, so the copies step nothing. With no servo
+  enabled (the run over) the arm falls quiet.
 
 Commands are camera twists in :data:`~sphere_servo.sim.arm.CAMERA_FRAME` (the current
 camera optical frame). A refused command is not executed and stops the arm at once (zero
@@ -229,7 +230,7 @@ class ArmSimCore:
         self.named('desired')
         self.arm.q_start = q_start
         self.arm.reset()
-        self.waiting = self.lockstep  # re-publish the latest frame until a command comes
+        self.waiting = self.lockstep  # re-publish the first frame until a command comes
         self._step_error = ''
         self._command_error = ''  # why the last command was refused
         self.held = False
@@ -280,7 +281,8 @@ class ArmSimCore:
         self._command_error = reason
         if not self.lockstep:
             return CommandOutcome(not reason, reason=reason)
-        return CommandOutcome(not reason, self.advance(), reason)  # waiting: its command
+        self.waiting = False
+        return CommandOutcome(not reason, self.advance(), reason)
 
     def refusal(self, frame_id: str, seq: int | None) -> str:
         """
@@ -329,8 +331,8 @@ class ArmSimCore:
 
     @property
     def republish_due(self) -> bool:
-        """Whether the last frame is to be re-published (lockstep, no command since)."""
-        return self.waiting
+        """Whether the last frame is to be re-published (module docstring: lockstep)."""
+        return self.waiting or (self.lockstep and self.servo_enabled)
 
     # --- output ---------------------------------------------------------------------
     def frame(self) -> SimFrame:

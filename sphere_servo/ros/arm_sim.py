@@ -66,8 +66,9 @@ Clock modes (parameter ``clock_mode``)
                   then renders and publishes exactly one image (a refused command advances
                   the clock with the arm held still, so a loop never stalls). Each image is
                   published at once and *re-published* unchanged (same stamp) when
-                  ``idle_republish_period`` wall seconds pass with no command after it, so
-                  a subscriber that connects late (or restarts) still gets it; all topics
+                  ``idle_republish_period`` wall seconds pass with no command after it (the
+                  first one and the one after a jump; any while a servo is enabled), so a
+                  subscriber that connects late (or restarts) still gets it; all topics
                   are volatile and reliable, with a history of 30 images and 100 of the
                   other messages.
 
@@ -178,6 +179,8 @@ class ArmSim(Node):
                                    'a time (a second one is refused while the first drives)')
         self._cmd_publishers = names
         self.core.on_command_publishers(names)
+        if self.sub_enabled.get_publisher_count() == 0:  # a servo that is gone drives nothing
+            self.core.on_servo_enabled(False)
 
     def _service(self, act, arming: bool = False):
         return functools.partial(self._serve, act, arming)
