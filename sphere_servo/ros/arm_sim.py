@@ -43,8 +43,8 @@ Clock modes (parameter ``clock_mode``)
                   (and the one after a reset/go_* jump) is published at once and *re-published*
                   unchanged (same stamp) every ``idle_republish_period`` wall seconds until
                   the next command arrives, so a subscriber that connects late still gets
-                  it; all topics are volatile and reliable, with a history of 30 images
-                  and 100 of the other messages.
+                  it. The QoS of each topic is :mod:`sphere_servo.ros.qos`'s (all
+                  reliable and volatile).
 
 Poses in parameters are 6 numbers ``[x, y, z, roll, pitch, yaw]`` (metres, radians,
 ``R = Rz(yaw) Ry(pitch) Rx(roll)``). ``desired_cMo`` / ``start_cMo`` give the target in the
@@ -65,11 +65,11 @@ from sphere_servo.ros.conversions import (camera_info_from_intrinsics, image_fro
                                           pose_from_se3, stamp_from_ns, twist_to_array)
 from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.params import declare_all, install_set_callback, run
+from sphere_servo.ros.qos import CLOCK, COMMAND, MONITOR, SENSOR
 from sphere_servo.sim.arm import CAMERA_FRAME
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-DEPTH, IMAGE_DEPTH = 100, 30  # publisher history (messages)
 HARDWARE_ID = 'ur5'
 
 
@@ -82,14 +82,13 @@ class ArmSim(Node):
         # runtime changes: the poses and start_mode (read by the go_* services); the others
         # are read-only
         install_set_callback(self, lambda: core.params, lambda p: setattr(core, 'params', p))
-        # history deep enough that a recorder or a monitor falling behind for a second (a
-        # loaded machine) loses nothing: a reliable publisher drops what leaves its history
-        self.pub_image = self.create_publisher(Image, 'camera/image_raw', IMAGE_DEPTH)
-        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', DEPTH)
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', DEPTH)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', DEPTH)
-        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
-        self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd, 10)
+        # QoS of each topic: sphere_servo.ros.qos
+        self.pub_image = self.create_publisher(Image, 'camera/image_raw', SENSOR)
+        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', SENSOR)
+        self.pub_joints = self.create_publisher(JointState, 'joint_states', MONITOR)
+        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', MONITOR)
+        self.pub_clock = self.create_publisher(Clock, '/clock', CLOCK)
+        self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd, COMMAND)
         for name, jump in (('~/reset', core.reset), ('~/go_start', lambda: core.go('start')),
                            ('~/go_desired', lambda: core.go('desired')),
                            ('~/hold', core.hold)):

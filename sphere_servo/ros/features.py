@@ -35,6 +35,7 @@ from sphere_servo.pipeline.features import DesiredSource, FeaturesCore
 from sphere_servo.pipeline.params import FeaturesParams
 from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.params import declare_all, run
+from sphere_servo.ros.qos import PIPELINE, SENSOR
 from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
                                       measurement_from_msg)
 from sphere_servo.sim.arm import CAMERA_FRAME
@@ -50,20 +51,21 @@ class FeaturesNode(Node):
     def __init__(self, **kwargs):
         super().__init__('features', **kwargs)
         self.core = FeaturesCore(declare_all(self, FeaturesParams))
-        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', 100)
+        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', PIPELINE)
                      for name in self.core.names}
         self.pubs_desired = {name: self.create_publisher(JointState, desired_topic(name),
                                                          DESIRED_QOS)
                              for name in self.core.names}
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.last_header: Header | None = None  # of the latest measurement
-        self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
+        self.create_subscription(JointState, 'detector/measurement', self._on_measurement,
+                                 PIPELINE)
         self.create_service(Trigger, '~/teach', self._srv_teach)
         if self.core.has_desired:  # from a pose: no image of the run
             self._publish_desired(Header(stamp=Time(), frame_id=CAMERA_FRAME))
         elif self.core.source is DesiredSource.IMAGE:
             self._info_sub = self.create_subscription(CameraInfo, 'camera/camera_info',
-                                                      self._on_info_for_image, 10)
+                                                      self._on_info_for_image, SENSOR)
         else:
             self.get_logger().info('waiting for ~/teach to set the desired features')
 
