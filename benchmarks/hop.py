@@ -88,7 +88,7 @@ def main(argv=None) -> int:
         ap.error('--rate, --width, --height and --depth must be positive')
 
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from sphere_servo.ros.executors import make_executor
     from sensor_msgs.msg import Image
 
     rclpy.init()
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     qos = _qos(args.qos, args.depth)
-    executor = SingleThreadedExecutor()
+    executor = make_executor()  # the nodes' executor: the floor they are compared with
     out: dict = {}
     latencies: list[float] = []
 
