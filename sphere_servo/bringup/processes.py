@@ -12,6 +12,11 @@ still live: it takes what is still on its way before closing the bag), then the 
 SIGINT, then SIGKILL after 10 s. On Linux the nodes are terminated (SIGTERM) if the
 launcher itself dies, even by SIGKILL (``PR_SET_PDEATHSIG``); the kernel ties this to the
 thread that started them, so start a :class:`Launcher` from a thread that outlives the run.
+
+Every process gets the shipped Fast DDS profile (``middleware_env`` of
+:mod:`sphere_servo.pipeline.middleware`) unless its environment names a profile of its own
+or another rmw. With ``single_process`` the scenario's nodes run as one process,
+``pipeline`` (:mod:`~sphere_servo.bringup.single`), stopped first as the servo is.
 """
 from __future__ import annotations
 
@@ -23,11 +28,13 @@ import sys
 import threading
 
 from sphere_servo.pipeline.config import ConfigError, package_prefix, Scenario
+from sphere_servo.pipeline.middleware import middleware_env
 
 MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
-           'record': 'sphere_servo.bag.record'}
-STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
+           'record': 'sphere_servo.bag.record', 'pipeline': 'sphere_servo.bringup.single'}
+STOP_ORDER = ('servo', 'pipeline', 'record', 'features', 'detector', 'arm_sim')
+SINGLE = 'pipeline'  # the one process of --single-process (sphere_servo.bringup.single)
 
 
 class LaunchError(ConfigError):
@@ -120,23 +127,33 @@ class Launcher:
     out: object = sys.stdout
     env: dict | None = None  # the children's environment (default: this process's)
     children: dict = field(default_factory=dict)
+    single_process: bool = False  # the nodes in one process, SINGLE (on one executor)
 
     def start(self, extra: dict | None = None) -> None:
         """Start every node of the scenario (``extra``: name → argv of other executables)."""
-        for name in self.scenario.nodes:
-            self._spawn(name, node_command(name) + ros_args(self.scenario))
+        for name in (SINGLE,) if self.single_process else self.scenario.nodes:
+            self._spawn(name, self._command(name))
         for name, argv in (extra or {}).items():
             self._spawn(name, node_command(name) + list(argv))
+
+    def _command(self, name: str) -> list[str]:
+        nodes = list(self.scenario.nodes) if name == SINGLE else []
+        return node_command(name) + nodes + ros_args(self.scenario)
 
     def restart(self, name: str) -> None:
         """Start ``name`` again with the same parameters (after it died or was killed)."""
         old = self.children[name]
         if old.popen.poll() is None:
             raise LaunchError(f'{name} is still running')
-        self._spawn(name, node_command(name) + ros_args(self.scenario))
+        self._spawn(name, self._command(name))
 
     def _spawn(self, name: str, cmd: list[str]) -> None:
-        env = dict(self.env if self.env is not None else os.environ, PYTHONUNBUFFERED='1')
+        # the shipped Fast DDS profile unless the environment names its own (or another rmw)
+        try:
+            env = middleware_env(self.env if self.env is not None else os.environ)
+        except FileNotFoundError as exc:
+            raise LaunchError(str(exc)) from None
+        env['PYTHONUNBUFFERED'] = '1'
         popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  text=True, env=env, start_new_session=True,
                                  preexec_fn=_die_with(os.getpid()))
