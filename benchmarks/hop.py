@@ -20,6 +20,8 @@ to Python).
   communication; Fast DDS delivers between endpoints of one participant without a transport);
   prints ``{"sent": n, "rate": hz, "received": m, "latency_ms": [...]}``.
 
+Every process spins on the nodes' executor (:func:`sphere_servo.ros.executors.make_executor`),
+so the hop is the floor the pipeline is compared with.
 QoS: reliable or best effort (``--qos``), keep last ``--depth``, volatile. :func:`hop_env` is
 the environment to start these processes with.
 """
