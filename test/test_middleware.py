@@ -186,7 +186,7 @@ def test_ros_env_names_the_installed_profile(ros_env, install_space):
 
 @pytest.mark.parametrize('single_process', [False, True], ids=['processes', 'single'])
 def test_the_launcher_gives_every_node_the_profile_unless_the_user_names_one(
-        single_process, ros_env, tmp_path):
+        single_process, ros_env, test_node, tmp_path):
     """
     The launcher's nodes get the profile and send images through its segment.
 
@@ -199,6 +199,11 @@ def test_the_launcher_gives_every_node_the_profile_unless_the_user_names_one(
     mine.write_bytes(SOURCE_PROFILE.read_bytes())
     segment = _shm_segment(ET.parse(SOURCE_PROFILE).getroot())
     sc = scenario('special_sphere')
+    node, spin = test_node
+    nodes = {'arm_sim', 'detector', 'features', 'servo'}
+
+    def graph() -> set[str]:
+        return {n for n, _ in node.get_node_names_and_namespaces()}
     # the profile the launcher's process finds (installed when it runs installed)
     for env, expected in ((bare, profile_path().resolve()), (dict(bare, **{
             PROFILE_VARIABLES[0]: str(mine)}), mine.resolve())):
@@ -219,7 +224,11 @@ def test_the_launcher_gives_every_node_the_profile_unless_the_user_names_one(
                 sizes.update(_own_segments(imager))
                 time.sleep(0.2)
             assert max(sizes, default=0) >= segment, sizes
+            # every node up (and so stopped as Ctrl-C stops it, not during its imports)
+            assert spin(60.0, until=lambda: nodes <= graph()), graph()
         finally:
             codes = run.stop()
             log.close()
         assert all(c == 0 for c in codes.values()), codes
+        # gone from the graph: the next run's nodes are not mistaken for these
+        assert spin(30.0, until=lambda: not nodes & graph()), graph()

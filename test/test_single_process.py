@@ -65,14 +65,19 @@ def _processes_of(domain: str) -> dict[int, str]:
 
 def test_single_process_is_the_same_lockstep_run(launch, test_node, ros_env):
     node, spin = test_node
+    nodes = {'arm_sim', 'detector', 'features', 'servo'}
+
+    def graph() -> set[str]:
+        return {n for n, _ in node.get_node_names_and_namespaces()}
     separate, _ = _run(launch)
-    seen = {}
+    # the separate run's nodes gone from the graph: what is seen next is the single process's
+    assert spin(30.0, until=lambda: not nodes & graph()), graph()
+    names, procs = set(), {}
 
     def watch():
         spin(0.05)
-        names = {n for n, _ in node.get_node_names_and_namespaces()}
-        if {'arm_sim', 'detector', 'features', 'servo'} <= names and 'procs' not in seen:
-            seen['procs'] = _processes_of(ros_env['ROS_DOMAIN_ID'])
+        names.update(graph())
+        procs.update(_processes_of(ros_env['ROS_DOMAIN_ID']))
         return proc.popen.poll() is not None
     proc = launch('launcher', '--config', 'special_sphere', '--until-converged', '--timeout',
                   '150', '--single-process')
@@ -83,9 +88,9 @@ def test_single_process_is_the_same_lockstep_run(launch, test_node, ros_env):
            re.search(r'final error against the taught pose: (.*)', log).group(1))
     print(f'separate processes: {separate}, single process: {one}')
     assert one == separate and int(one[0]) > 100
-    # one node process (besides the launcher), and the nodes log from it
-    nodes = {p: n for p, n in seen['procs'].items() if n != 'launcher'}
-    assert sorted(nodes.values()) == ['pipeline'], seen
+    # the four nodes in the graph, one node process (besides the launcher), and they log from it
+    assert nodes <= names, names
+    assert sorted(n for n in procs.values() if n != 'launcher') == ['pipeline'], procs
     for name in ('arm_sim', 'features', 'servo'):  # (the detector logs only problems)
         assert re.search(rf'^\[pipeline\] .*\[{name}\]', log, re.M), name
     assert not re.search(r'^\[(arm_sim|detector|features|servo)\] ', log, re.M)
@@ -102,7 +107,9 @@ def test_single_process_stops_on_ctrl_c_with_a_zero_twist(launch, test_node):
     node.create_subscription(TwistStamped, 'camera/cmd_vel', twists.append, observer(COMMAND))
     proc = launch('launcher', '--config', 'special_sphere', '--single-process')
     assert spin(90.0, until=lambda: any(m.status[0].message == 'servoing' for m in states)
-                and any(t.header.stamp.sec > 0 for t in twists)), proc.log()[-3000:]
+                and any(t.header.stamp.sec > 0 for t in twists)), (
+        len(states), {m.status[0].message for m in states if m.status}, len(twists),
+        proc.log()[:3000])
     assert proc.stop(timeout=30.0) == 0, proc.log()[-3000:]
     spin(1.0)
     log = proc.log()
