@@ -2,7 +2,7 @@
 ``launcher``: start the servo pipeline's nodes as separate processes from a scenario file.
 
     launcher --config special_sphere [--until-converged] [--timeout 120] [--record DIR]
-             [--single-process]
+             [--single-process] [--nice N]
 
 A scenario (``config/scenarios/<name>.yaml``, see :mod:`sphere_servo.pipeline.config`) names
 the nodes, their plain ROS 2 params files (``config/params/*.yaml``, given to every node in
@@ -15,6 +15,8 @@ The nodes run as processes
 terminated if the launcher dies; ``--single-process``: all of them in one process, on one
 executor, :mod:`~sphere_servo.bringup.single`); an rclpy node in the launcher
 (:mod:`~sphere_servo.bringup.supervisor`) runs the teach sequence and watches the servo.
+``--nice N`` adds N to every node's niceness: ``--nice -10`` (root or CAP_SYS_NICE) keeps the
+loop's latency near the idle machine's while other processes load the CPU (``make bench``).
 Ctrl-C (or SIGTERM) stops the servo first (its last word is a zero twist), then the recorder,
 then the others. With ``--record`` the run (teach included) begins once the recorder
 reports that it records every topic. With ``--until-converged`` the exit code
@@ -55,14 +57,16 @@ class ExitCode(IntEnum):
 def run(sc: Scenario, until_converged: bool = False, timeout: float | None = None,
         record: str | None = None, collect: bool = False, out=sys.stdout,
         progress_every: float = 1.0, env: dict | None = None,
-        single_process: bool = False) -> tuple[ExitCode, Supervisor | None, dict[str, int]]:
+        single_process: bool = False,
+        nice: int = 0) -> tuple[ExitCode, Supervisor | None, dict[str, int]]:
     """
     Start the pipeline, teach, servo.
 
     Returns ``(exit code, supervisor, the nodes' exit codes)``; the (closed)
     :class:`~sphere_servo.bringup.supervisor.Supervisor` holds the histories when
     ``collect``. ``env``: the nodes' environment (its ``ROS_DOMAIN_ID`` is also the
-    supervisor's). ``single_process``: the nodes in one process (:mod:`.single`).
+    supervisor's). ``single_process``: the nodes in one process (:mod:`.single`); ``nice``:
+    added to every node's niceness.
     """
     def log(msg):
         out.write(f'[launcher] {msg}\n')
@@ -73,7 +77,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
             'the start pose; set servo start_enabled: false in its params')
         return ExitCode.BAD_CONFIG, None, {}
     timeout = float(timeout if timeout is not None else sc.timeout)
-    launcher = Launcher(sc, out=out, env=env, single_process=single_process)
+    launcher = Launcher(sc, out=out, env=env, single_process=single_process, nice=nice)
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
     if record:
@@ -169,6 +173,9 @@ def main(argv=None) -> int:
     ap.add_argument('--record', metavar='DIR', help='record a rosbag2 into DIR')
     ap.add_argument('--single-process', action='store_true',
                     help='run the nodes in one process, on one executor (lowest latency)')
+    ap.add_argument('--nice', type=int, default=0, metavar='N',
+                    help="add N to the nodes' niceness (negative: a higher priority, as root "
+                    'or with CAP_SYS_NICE)')
     args = ap.parse_args(argv)
     try:
         sc = scenario(args.scenario)
@@ -178,7 +185,7 @@ def main(argv=None) -> int:
         print(f'launcher: {exc}', file=sys.stderr)
         return ExitCode.BAD_CONFIG
     code, _, _ = run(sc, args.until_converged, args.timeout, args.record,
-                     single_process=args.single_process)
+                     single_process=args.single_process, nice=args.nice)
     return code
 
 

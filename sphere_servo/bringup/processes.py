@@ -12,6 +12,8 @@ still live: it takes what is still on its way before closing the bag), then the 
 SIGINT, then SIGKILL after 10 s. On Linux the nodes are terminated (SIGTERM) if the
 launcher itself dies, even by SIGKILL (``PR_SET_PDEATHSIG``); the kernel ties this to the
 thread that started them, so start a :class:`Launcher` from a thread that outlives the run.
+``nice`` is added to each node's niceness before it starts: a negative one puts the
+pipeline's callbacks before other work on a loaded CPU.
 
 Every process gets the shipped Fast DDS profile (``middleware_env`` of
 :mod:`sphere_servo.pipeline.middleware`) unless its environment names a profile of its own
@@ -78,18 +80,21 @@ _LIBC = _libc() if sys.platform.startswith('linux') else None
 PR_SET_PDEATHSIG = 1
 
 
-def _die_with(parent_pid: int):
+def _die_with(parent_pid: int, nice: int = 0):
     """
-    Return the ``preexec_fn`` of a node (Linux) that dies with the launcher.
+    Return the ``preexec_fn`` of a node (Linux) that dies with the launcher, at ``nice``.
 
     The kernel sends the node SIGTERM when the launcher dies, even by SIGKILL, so no
     orphaned node keeps driving the arm (SIGTERM is the nodes' clean shutdown: the servo's
     last word is a zero twist). If the launcher died before this ran, the node is
-    terminated at once.
+    terminated at once. ``nice`` is added to the node's niceness before it runs, so every
+    thread it makes has it (a negative one needs root or CAP_SYS_NICE: PermissionError).
     """
     libc = _LIBC
 
     def preexec():
+        if nice:
+            os.nice(nice)
         if libc is not None:
             libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
             if os.getppid() != parent_pid:
@@ -128,6 +133,7 @@ class Launcher:
     env: dict | None = None  # the children's environment (default: this process's)
     children: dict = field(default_factory=dict)
     single_process: bool = False  # the nodes in one process, SINGLE (on one executor)
+    nice: int = 0  # added to every node's niceness (negative: before other work on the CPU)
 
     def start(self, extra: dict | None = None) -> None:
         """Start every node of the scenario (``extra``: name → argv of other executables)."""
@@ -154,9 +160,13 @@ class Launcher:
         except FileNotFoundError as exc:
             raise LaunchError(str(exc)) from None
         env['PYTHONUNBUFFERED'] = '1'
-        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                 text=True, env=env, start_new_session=True,
-                                 preexec_fn=_die_with(os.getpid()))
+        try:
+            popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, env=env, start_new_session=True,
+                                     preexec_fn=_die_with(os.getpid(), self.nice))
+        except subprocess.SubprocessError as exc:  # what preexec_fn raised: os.nice refused
+            raise LaunchError(f'cannot start {name} at nice {self.nice:+d} (a higher '
+                              f'priority needs root or CAP_SYS_NICE): {exc}') from None
         t = threading.Thread(target=_forward, args=(name, popen.stdout, self.out), daemon=True)
         t.start()
         self.children[name] = Child(name, popen, t)
