@@ -101,15 +101,18 @@ def test_single_process_stops_on_ctrl_c_with_a_zero_twist(launch, test_node):
     from geometry_msgs.msg import TwistStamped
     from sphere_servo.ros.qos import COMMAND, MONITOR, observer
     node, spin = test_node
-    states, twists = [], []
-    node.create_subscription(DiagnosticArray, 'servo/state', states.append,
-                             observer(MONITOR))
+    states, twists = set(), []
+
+    def on_state(msg):
+        states.update(st.message for st in msg.status[:1])
+    node.create_subscription(DiagnosticArray, 'servo/state', on_state, observer(MONITOR))
     node.create_subscription(TwistStamped, 'camera/cmd_vel', twists.append, observer(COMMAND))
     proc = launch('launcher', '--config', 'special_sphere', '--single-process')
-    assert spin(90.0, until=lambda: any(m.status[0].message == 'servoing' for m in states)
-                and any(t.header.stamp.sec > 0 for t in twists)), (
-        len(states), {m.status[0].message for m in states if m.status}, len(twists),
-        proc.log()[:3000])
+    # the servo enabled and answering images (the 271 servoing frames take about 3 s: under
+    # load this process can be matched with the pipeline only once it has converged)
+    assert spin(90.0, until=lambda: states & {'servoing', 'converged'}
+                and twists and twists[-1].header.stamp.sec > 0), (
+        states, len(twists), proc.log()[:3000])
     assert proc.stop(timeout=30.0) == 0, proc.log()[-3000:]
     spin(1.0)
     log = proc.log()
