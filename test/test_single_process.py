@@ -6,11 +6,14 @@ The single-process mode (issue 17): ``launcher --single-process``, the ``pipelin
 - ``test_single_process_is_the_same_lockstep_run``: ``launcher --config special_sphere
   --until-converged`` in separate processes and with ``--single-process``: the same iterations
   to convergence and the same final pose (lockstep: the result does not depend on the
-  transport), and with ``--single-process`` the launcher started one node process, in which
-  all four nodes run (the graph has them, one pid holds them).
-- ``test_single_process_stops_on_ctrl_c_with_a_zero_twist``: Ctrl-C to that launcher stops
-  the pipeline with exit code 0, and the servo's last word (a zero twist with a zero stamp)
-  is published while the arm still listens.
+  transport), and with ``--single-process`` the launcher started one node process, from
+  which the nodes log.
+- ``test_single_process_stops_on_ctrl_c_with_a_zero_twist``: ``launcher --single-process``
+  runs the four nodes in one process (the graph has them, one pid holds them; checked while
+  it runs: under load this test's process discovers them only seconds after the launcher's
+  supervisor, sometimes after a converging run has ended); Ctrl-C to it stops the pipeline
+  with exit code 0, and the servo's last word (a zero twist with a zero stamp) is published
+  while the arm still listens.
 """
 from __future__ import annotations
 
@@ -63,20 +66,11 @@ def _processes_of(domain: str) -> dict[int, str]:
     return found
 
 
-def test_single_process_is_the_same_lockstep_run(launch, test_node, ros_env):
-    node, spin = test_node
-    nodes = {'arm_sim', 'detector', 'features', 'servo'}
-
-    def graph() -> set[str]:
-        return {n for n, _ in node.get_node_names_and_namespaces()}
+def test_single_process_is_the_same_lockstep_run(launch, ros_env):
     separate, _ = _run(launch)
-    # the separate run's nodes gone from the graph: what is seen next is the single process's
-    assert spin(30.0, until=lambda: not nodes & graph()), graph()
-    names, procs = set(), {}
+    procs = {}
 
     def watch():
-        spin(0.05)
-        names.update(graph())
         procs.update(_processes_of(ros_env['ROS_DOMAIN_ID']))
         return proc.popen.poll() is not None
     proc = launch('launcher', '--config', 'special_sphere', '--until-converged', '--timeout',
@@ -88,15 +82,14 @@ def test_single_process_is_the_same_lockstep_run(launch, test_node, ros_env):
            re.search(r'final error against the taught pose: (.*)', log).group(1))
     print(f'separate processes: {separate}, single process: {one}')
     assert one == separate and int(one[0]) > 100
-    # the four nodes in the graph, one node process (besides the launcher), and they log from it
-    assert nodes <= names, names
+    # one node process (besides the launcher), and the nodes log from it
     assert sorted(n for n in procs.values() if n != 'launcher') == ['pipeline'], procs
     for name in ('arm_sim', 'features', 'servo'):  # (the detector logs only problems)
         assert re.search(rf'^\[pipeline\] .*\[{name}\]', log, re.M), name
     assert not re.search(r'^\[(arm_sim|detector|features|servo)\] ', log, re.M)
 
 
-def test_single_process_stops_on_ctrl_c_with_a_zero_twist(launch, test_node):
+def test_single_process_stops_on_ctrl_c_with_a_zero_twist(launch, test_node, ros_env):
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import TwistStamped
     from sphere_servo.ros.qos import COMMAND, MONITOR, observer
@@ -113,6 +106,12 @@ def test_single_process_stops_on_ctrl_c_with_a_zero_twist(launch, test_node):
     assert spin(90.0, until=lambda: states & {'servoing', 'converged'}
                 and twists and twists[-1].header.stamp.sec > 0), (
         states, len(twists), proc.log()[:3000])
+    # the four nodes in the graph, and one node process (besides the launcher) holds them
+    nodes = {'arm_sim', 'detector', 'features', 'servo'}
+    assert spin(60.0, until=lambda: nodes <= {
+        n for n, _ in node.get_node_names_and_namespaces()}), node.get_node_names()
+    procs = _processes_of(ros_env['ROS_DOMAIN_ID'])
+    assert sorted(n for n in procs.values() if n != 'launcher') == ['pipeline'], procs
     assert proc.stop(timeout=30.0) == 0, proc.log()[-3000:]
     spin(1.0)
     log = proc.log()
