@@ -34,6 +34,7 @@ setup(
             'features = sphere_servo.ros.features:main',
             'servo = sphere_servo.ros.servo:main',
             'launcher = sphere_servo.bringup.launcher:main',
+            'pipeline = sphere_servo.bringup.single:main',
             'record = sphere_servo.bag.record:main',
             'replay = sphere_servo.bag.replay:main',
             'reindex = sphere_servo.bag.repair:main',

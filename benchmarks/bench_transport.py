@@ -1,27 +1,19 @@
 """
 Benchmark of the bare image hop, Fast DDS defaults against the shipped profile (issue 17).
 
-Measured side by side in one run, each case in fresh processes (``benchmarks.hop``), 30 Hz,
-reliable, keep last 10, discovery on localhost; latency = arrival in the subscriber's callback
-− the stamp taken right before ``publish`` (both on the system clock):
-
-- two processes, 640×480 rgb8, with Fast DDS's defaults (the baseline) and with
-  ``config/fastdds.xml`` (``sphere_servo.pipeline.middleware.profile_env``): median, p95,
-  p99 and max, each with the default's figure beside it and their ratio (target: the
-  profile's median ≤ 0.5× the default's), and frames received / sent;
-- one process, publisher and subscriber nodes on one executor, with the profile: the floor of
-  a single-process pipeline (rclpy has no intra-process communication of its own; Fast DDS
-  hands samples between endpoints of one participant without a transport), against the
-  profiled two-process hop;
-- the same three under a CPU load of two busy processes that this benchmark starts (a core
-  each on this machine's two; rows marked ``+2 busy``), against the loaded defaults;
-- two processes, 1280×720 rgb8, defaults and profile (median, p99, received / sent).
+Each case in fresh processes (``benchmarks.hop``), 30 Hz, reliable, keep last 10, discovery
+on localhost; latency = arrival in the subscriber's callback − the stamp taken right before
+``publish`` (both on the system clock). :func:`hop` runs one case, :func:`busy_load` keeps
+the CPU busy: the loop benchmark (``bench_loop``) measures with them, side by side with the
+pipeline, the 640×480 hop with Fast DDS's defaults and with ``config/fastdds.xml``, in two
+processes and in one, idle and under a load of two busy processes. This area adds 1280×720
+rgb8 images, two processes, defaults and profile (median, p99, received / sent).
 
 ``python -m benchmarks.bench_transport [--quick]`` prints the rows as a table.
 """
 from __future__ import annotations
 
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 import json
 import os
 import signal
@@ -121,28 +113,15 @@ def _rows(label: str, r: dict, base: dict | None, base_name: str | None, target:
 
 
 def run(quick: bool = False) -> list[dict]:
+    """1280×720 images, defaults against the profile (the 640×480 rows: area ``loop``)."""
     seconds = 3.0 if quick else 10.0
-    rows = []
-    for load in (False, True):
-        tag = ' +2 busy' if load else ''
-        with busy_load(2) if load else nullcontext():
-            default = hop(2, False, seconds=seconds)
-            profiled = hop(2, True, seconds=seconds)
-            inproc = hop(1, True, seconds=seconds)
-        rows += _rows(f'transport: 640×480 hop, 2 processes, defaults{tag}', default, None,
-                      None, 'baseline')
-        rows += _rows(f'transport: 640×480 hop, 2 processes, profile{tag}', profiled, default,
-                      'defaults', '≤ 0.5× defaults')
-        rows += _rows(f'transport: 640×480 hop, 1 process, profile{tag}', inproc, profiled,
-                      '2-process profile', 'information (single-process floor)')
     hd = (('median', 50), ('p99', 99))
     default = hop(2, False, HD, seconds)
     profiled = hop(2, True, HD, seconds)
-    rows += _rows('transport: 1280×720 hop, 2 processes, defaults', default, None, None,
-                  'baseline', hd)
-    rows += _rows('transport: 1280×720 hop, 2 processes, profile', profiled, default,
-                  'defaults', '≤ 0.5× defaults', hd)
-    return rows
+    return _rows('transport: 1280×720 hop, 2 processes, defaults', default, None, None,
+                 'baseline', hd) \
+        + _rows('transport: 1280×720 hop, 2 processes, profile', profiled, default,
+                'defaults', '≤ 0.5× defaults', hd)
 
 
 if __name__ == '__main__':

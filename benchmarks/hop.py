@@ -20,6 +20,8 @@ to Python).
   communication; Fast DDS delivers between endpoints of one participant without a transport);
   prints ``{"sent": n, "rate": hz, "received": m, "latency_ms": [...]}``.
 
+Every process spins on the nodes' executor (:func:`sphere_servo.ros.executors.make_executor`),
+so the hop is the floor the pipeline is compared with.
 QoS: reliable or best effort (``--qos``), keep last ``--depth``, volatile. :func:`hop_env` is
 the environment to start these processes with.
 """
@@ -88,7 +90,7 @@ def main(argv=None) -> int:
         ap.error('--rate, --width, --height and --depth must be positive')
 
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from sphere_servo.ros.executors import make_executor
     from sensor_msgs.msg import Image
 
     rclpy.init()
@@ -99,7 +101,7 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     qos = _qos(args.qos, args.depth)
-    executor = SingleThreadedExecutor()
+    executor = make_executor()  # the nodes' executor: the floor they are compared with
     out: dict = {}
     latencies: list[float] = []
 

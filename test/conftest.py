@@ -5,7 +5,8 @@ An isolated ROS 2 domain per test, a colcon-built install space, and a launcher 
 installed executables (launch_testing style, without launch_testing, which is not on PyPI).
 
 - ``ros_env``       environment for processes of one test: its own ``ROS_DOMAIN_ID``,
-                    localhost discovery, and the install space sourced.
+                    localhost discovery, the install space sourced, and the installed Fast
+                    DDS profile (``middleware_env``: what the launcher gives its nodes).
 - ``install_space`` ``colcon build`` of this package into a temporary install base, once per
                     session; executables are resolved as ``ros2 run`` does:
                     ``get_package_prefix('sphere_servo')/lib/sphere_servo/<name>``.
@@ -26,9 +27,14 @@ import time
 import pytest
 
 from sphere_servo.bringup.processes import interrupt
+from sphere_servo.pipeline.middleware import middleware_env, PROFILE_NAME
 
 REPO = Path(__file__).resolve().parents[1]
 _domain_counter = itertools.count()
+
+# the participants of this process (test nodes, supervisors) use the profile too; Fast DDS
+# reads it when the process's first participant is made, so it is set before any test runs
+os.environ.update(middleware_env(os.environ))
 
 
 ROS_FIXTURES = {'install_space', 'ros_env', 'launch', 'test_node'}
@@ -96,6 +102,12 @@ def install_space(tmp_path_factory) -> dict:
     return sourced
 
 
+def installed_profile(install_space: dict) -> Path:
+    """Return the Fast DDS profile the install space ships."""
+    return Path(install_space['SPHERE_SERVO_INSTALL']) / 'sphere_servo' / 'share' \
+        / 'sphere_servo' / 'config' / PROFILE_NAME
+
+
 def executable_path(env: dict, name: str) -> str:
     """Resolve ``name`` exactly as ``ros2 run sphere_servo <name>`` does."""
     code = ('from ament_index_python.packages import get_package_prefix as g;'
@@ -117,6 +129,7 @@ def ros_env(install_space):
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     env['PYTHONUNBUFFERED'] = '1'
     env.pop('ROS_LOCALHOST_ONLY', None)
+    env.update(middleware_env(env, installed_profile(install_space)))
     yield env
     lock.close()
 

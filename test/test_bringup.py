@@ -1,10 +1,21 @@
-"""The launcher's command-line contract without ROS: exit codes, and a bad config refused."""
+"""
+The launcher's contract without ROS: exit codes, a bad config refused, the nodes' niceness.
+
+``Launcher.nice`` (``launcher --nice N``) is checked on a child that prints its niceness:
+the launcher's own plus N; a refused ``os.nice`` (no CAP_SYS_NICE) is a LaunchError naming
+the node, not a child at the wrong priority.
+"""
 from __future__ import annotations
 
 import io
+import os
+import sys
+
+import pytest
 
 from sphere_servo.bringup import launcher
 from sphere_servo.bringup.launcher import ExitCode
+from sphere_servo.bringup.processes import Launcher, LaunchError
 from sphere_servo.experiments import demo
 from sphere_servo.pipeline.config import scenario
 
@@ -31,3 +42,26 @@ def test_teach_with_an_enabled_servo_is_refused_before_any_process_starts(tmp_pa
     code, sup, codes = launcher.run(config, until_converged=True, out=out)
     assert code is ExitCode.BAD_CONFIG and sup is None and codes == {}
     assert 'start_enabled: false' in out.getvalue()
+
+
+PRINT_NICE = [sys.executable, '-c', 'import os; print(os.nice(0))']
+
+
+@pytest.mark.parametrize('nice', [0, 3])
+def test_the_launcher_starts_its_nodes_at_its_niceness_plus_nice(nice):
+    out = io.StringIO()
+    run = Launcher(scenario('special_sphere'), out=out, nice=nice)
+    run._spawn('probe', PRINT_NICE)
+    assert run.children['probe'].popen.wait(30) == 0
+    run.stop()  # joins the thread that forwards its output
+    assert out.getvalue() == f'[probe] {os.nice(0) + nice}\n'
+
+
+def test_a_refused_priority_is_a_launch_error(monkeypatch):
+    def refuse(increment):
+        raise PermissionError(1, 'Operation not permitted')
+    monkeypatch.setattr(os, 'nice', refuse)  # the forked child calls the same function
+    run = Launcher(scenario('special_sphere'), out=io.StringIO(), nice=-10)
+    with pytest.raises(LaunchError, match=r'cannot start probe at nice -10'):
+        run._spawn('probe', PRINT_NICE)
+    assert run.children == {}

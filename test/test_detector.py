@@ -270,6 +270,16 @@ def test_buffer_with_row_padding_round_trips():
     np.testing.assert_array_equal(image_from_buffer(6, 5, 5, 'mono8', mono.tobytes()), mono)
 
 
+def test_an_rclpy_uint8_array_is_read_in_place():
+    """Decode rclpy's ``Image.data`` (an ``array('B')``) in place: same pixels, no copy."""
+    from array import array
+    img = np.random.default_rng(1).integers(0, 255, (6, 5, 3), dtype=np.uint8)
+    data = array('B', img.tobytes())
+    out = image_from_buffer(6, 5, 15, 'rgb8', data)
+    np.testing.assert_array_equal(out, img)
+    assert np.shares_memory(out, np.frombuffer(data, np.uint8))
+
+
 def test_encodings_agree_and_mono_has_no_marks():
     target = special_sphere()
     cMo = random_poses(target, 1, seed=3)[0]

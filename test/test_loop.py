@@ -404,7 +404,7 @@ def _exact_measurement(cMo, target, t: float):
     from sphere_servo.vision.detector import Detection, Mark
     obs = observe(cMo, target)
     det = Detection(True, '', None, obs.sphere, 0.0, 0.0, ((320.0, 240.0), (60.0, 60.0), 0.0),
-                    {k: Mark(k, np.array([320.0, 240.0]), q[:2] / q[2], True)
+                    {k: Mark(k, np.array([320.0, 240.0]), q / np.linalg.norm(q), True)
                      for k, q in obs.q.items()})
     return measurement_msg(det, header(t, 'cam'))
 

@@ -9,6 +9,8 @@ The shipped Fast DDS profile (config/fastdds.xml) and the environment that selec
   of the profile's size (without it, through Fast DDS's 512 KiB one), which is what shows
   that rmw_fastrtps read the file; the colcon install ships it where ``profile_path()``
   finds it.
+- The launcher gives every node it starts (both modes) the installed profile, or the
+  user's own, and the nodes send through its segment; the tests' ``ros_env`` names it.
 """
 from __future__ import annotations
 
@@ -20,11 +22,11 @@ import time
 import xml.etree.ElementTree as ET
 
 from benchmarks.hop import hop_env
-from conftest import _acquire_domain_id, REPO
+from conftest import _acquire_domain_id, installed_profile, REPO
 import pytest
 
-from sphere_servo.bringup.processes import interrupt
-from sphere_servo.pipeline.config import package_prefix
+from sphere_servo.bringup.processes import interrupt, Launcher
+from sphere_servo.pipeline.config import package_prefix, scenario
 from sphere_servo.pipeline.middleware import (middleware_env, profile_env, profile_path,
                                               PROFILE_VARIABLES, RMW)
 
@@ -168,3 +170,65 @@ def test_the_install_space_ships_the_profile(install_space):
         / 'sphere_servo' / 'config' / 'fastdds.xml'
     assert Path(out) == installed
     assert installed.read_bytes() == SOURCE_PROFILE.read_bytes()
+
+
+def _environ(pid: int) -> dict[str, str]:
+    raw = Path(f'/proc/{pid}/environ').read_bytes().split(b'\0')
+    return dict(kv.decode().split('=', 1) for kv in raw if b'=' in kv)
+
+
+def test_ros_env_names_the_installed_profile(ros_env, install_space):
+    installed = installed_profile(install_space)
+    assert installed.is_file()
+    assert all(ros_env[n] == str(installed.resolve()) for n in PROFILE_VARIABLES)
+    assert ros_env['RMW_IMPLEMENTATION'] == RMW
+
+
+@pytest.mark.parametrize('single_process', [False, True], ids=['processes', 'single'])
+def test_the_launcher_gives_every_node_the_profile_unless_the_user_names_one(
+        single_process, ros_env, test_node, tmp_path):
+    """
+    The launcher's nodes get the profile and send images through its segment.
+
+    Started from an environment without the profile's variables, every node process has
+    them (the shipped file) and arm_sim (or the single process) maps a segment of the
+    profile's size; a user's own profile in the environment is what the nodes get.
+    """
+    bare = {k: v for k, v in ros_env.items() if k not in PROFILE_VARIABLES}
+    mine = tmp_path / 'mine.xml'
+    mine.write_bytes(SOURCE_PROFILE.read_bytes())
+    segment = _shm_segment(ET.parse(SOURCE_PROFILE).getroot())
+    sc = scenario('special_sphere')
+    node, spin = test_node
+    nodes = {'arm_sim', 'detector', 'features', 'servo'}
+
+    def graph() -> set[str]:
+        return {n for n, _ in node.get_node_names_and_namespaces()}
+    # the profile the launcher's process finds (installed when it runs installed)
+    for env, expected in ((bare, profile_path().resolve()), (dict(bare, **{
+            PROFILE_VARIABLES[0]: str(mine)}), mine.resolve())):
+        log = open(tmp_path / 'launch.log', 'w')
+        run = Launcher(sc, out=log, env=env, single_process=single_process)
+        try:
+            run.start()
+            pids = {n: c.popen.pid for n, c in run.children.items()}
+            for name, pid in pids.items():
+                got = _environ(pid)
+                assert all(got[n] == str(expected) for n in PROFILE_VARIABLES), (
+                    name, expected, [got.get(n) for n in PROFILE_VARIABLES])
+                assert got['RMW_IMPLEMENTATION'] == RMW
+            imager = pids['pipeline' if single_process else 'arm_sim']
+            sizes: set[int] = set()
+            deadline = time.monotonic() + 60
+            while max(sizes, default=0) < segment and time.monotonic() < deadline:
+                sizes.update(_own_segments(imager))
+                time.sleep(0.2)
+            assert max(sizes, default=0) >= segment, sizes
+            # every node up (and so stopped as Ctrl-C stops it, not during its imports)
+            assert spin(60.0, until=lambda: nodes <= graph()), graph()
+        finally:
+            codes = run.stop()
+            log.close()
+        assert all(c == 0 for c in codes.values()), codes
+        # gone from the graph: the next run's nodes are not mistaken for these
+        assert spin(30.0, until=lambda: not nodes & graph()), graph()

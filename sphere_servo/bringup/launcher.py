@@ -2,6 +2,7 @@
 ``launcher``: start the servo pipeline's nodes as separate processes from a scenario file.
 
     launcher --config special_sphere [--until-converged] [--timeout 120] [--record DIR]
+             [--single-process] [--nice N]
 
 A scenario (``config/scenarios/<name>.yaml``, see :mod:`sphere_servo.pipeline.config`) names
 the nodes, their plain ROS 2 params files (``config/params/*.yaml``, given to every node in
@@ -11,13 +12,18 @@ servo), ``timeout`` (wall seconds for ``--until-converged``), ``record_topics``.
 ``share/sphere_servo/config/scenarios`` and then in the source tree's ``config/scenarios``.
 The nodes run as processes
 (:mod:`~sphere_servo.bringup.processes`: how they are found, forwarded, stopped, and
-terminated if the launcher dies); an rclpy node in the launcher
+terminated if the launcher dies; ``--single-process``: all of them in one process, on one
+executor, :mod:`~sphere_servo.bringup.single`); an rclpy node in the launcher
 (:mod:`~sphere_servo.bringup.supervisor`) runs the teach sequence and watches the servo.
+``--nice N`` adds N to every node's niceness: ``--nice -10`` (root or CAP_SYS_NICE) keeps the
+loop's latency near the idle machine's while other processes load the CPU (``make bench``).
 Ctrl-C (or SIGTERM) stops the servo first (its last word is a zero twist), then the recorder,
 then the others. With ``--record`` the run (teach included) begins once the recorder
 reports that it records every topic. With ``--until-converged`` the exit code
 (:class:`ExitCode`) is 0 when the servo reports ``converged``, 1 on timeout, 3 if a node
-died, 4 if the teach sequence failed; 2 is a bad config.
+died, 4 if the teach sequence failed; 2 is a bad config. The nodes and the launcher's own
+node use the shipped Fast DDS profile unless the environment names another
+(:mod:`sphere_servo.pipeline.middleware`).
 
 Before anything starts, the scenario is checked as each node would check it
 (:func:`preflight`: its parameters, an unknown name included, and what its core refuses at
@@ -42,6 +48,7 @@ from sphere_servo.pipeline.arm_sim import ArmSimCore
 from sphere_servo.pipeline.config import ConfigError, Scenario, scenario
 from sphere_servo.pipeline.detector import DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore
+from sphere_servo.pipeline.middleware import middleware_env
 from sphere_servo.pipeline.params import NODE_PARAMS
 from sphere_servo.pipeline.servo import ServoCore
 from sphere_servo.ros.params import StopFlag
@@ -82,15 +89,17 @@ def preflight(sc: Scenario) -> str:
 
 def run(sc: Scenario, until_converged: bool = False, timeout: float | None = None,
         record: str | None = None, collect: bool = False, out=sys.stdout,
-        progress_every: float = 1.0,
-        env: dict | None = None) -> tuple[ExitCode, Supervisor | None, dict[str, int]]:
+        progress_every: float = 1.0, env: dict | None = None,
+        single_process: bool = False,
+        nice: int = 0) -> tuple[ExitCode, Supervisor | None, dict[str, int]]:
     """
     Start the pipeline, teach, servo.
 
     Returns ``(exit code, supervisor, the nodes' exit codes)``; the (closed)
     :class:`~sphere_servo.bringup.supervisor.Supervisor` holds the histories when
     ``collect``. ``env``: the nodes' environment (its ``ROS_DOMAIN_ID`` is also the
-    supervisor's).
+    supervisor's). ``single_process``: the nodes in one process (:mod:`.single`); ``nice``:
+    added to every node's niceness.
     """
     def log(msg):
         out.write(f'[launcher] {msg}\n')
@@ -109,7 +118,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         log(f'scenario error ({sc.path}), nothing started: {refused}')
         return ExitCode.BAD_CONFIG, None, {}
     timeout = float(timeout if timeout is not None else sc.timeout)
-    launcher = Launcher(sc, out=out, env=env)
+    launcher = Launcher(sc, out=out, env=env, single_process=single_process, nice=nice)
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
     if record:
@@ -214,13 +223,21 @@ def main(argv=None) -> int:
     ap.add_argument('--timeout', type=float, default=None, help='wall seconds (default: '
                     "the scenario's timeout)")
     ap.add_argument('--record', metavar='DIR', help='record a rosbag2 into DIR')
+    ap.add_argument('--single-process', action='store_true',
+                    help='run the nodes in one process, on one executor (lowest latency)')
+    ap.add_argument('--nice', type=int, default=0, metavar='N',
+                    help="add N to the nodes' niceness (negative: a higher priority, as root "
+                    'or with CAP_SYS_NICE)')
     args = ap.parse_args(argv)
     try:
         sc = scenario(args.scenario)
-    except ConfigError as exc:
+        # before the supervisor's participant exists: Fast DDS reads the profile then
+        os.environ.update(middleware_env(os.environ))
+    except (ConfigError, FileNotFoundError) as exc:
         print(f'launcher: {exc}', file=sys.stderr)
         return ExitCode.BAD_CONFIG
-    code, _, _ = run(sc, args.until_converged, args.timeout, args.record, out=sys.stdout)
+    code, _, _ = run(sc, args.until_converged, args.timeout, args.record, out=sys.stdout,
+                     single_process=args.single_process, nice=args.nice)
     return code
 
 

@@ -16,6 +16,14 @@ The last lines each node printed are kept: :meth:`Launcher.deaths` tells why a n
 in its own words (``[features] refused to start: …``). The launcher writes no file of its
 own (the nodes read the scenario's params files where they are), so a launcher killed
 with SIGKILL leaves nothing behind.
+
+``nice`` is added to each node's niceness before it starts: a negative one puts the
+pipeline's callbacks before other work on a loaded CPU.
+
+Every process gets the shipped Fast DDS profile (``middleware_env`` of
+:mod:`sphere_servo.pipeline.middleware`) unless its environment names a profile of its own
+or another rmw. With ``single_process`` the scenario's nodes run as one process,
+``pipeline`` (:mod:`~sphere_servo.bringup.single`), stopped first as the servo is.
 """
 from __future__ import annotations
 
@@ -28,11 +36,13 @@ import sys
 import threading
 
 from sphere_servo.pipeline.config import ConfigError, package_prefix, Scenario
+from sphere_servo.pipeline.middleware import middleware_env
 
 MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
-           'record': 'sphere_servo.bag.record'}
-STOP_ORDER = ('servo', 'record', 'features', 'detector', 'arm_sim')
+           'record': 'sphere_servo.bag.record', 'pipeline': 'sphere_servo.bringup.single'}
+STOP_ORDER = ('servo', 'pipeline', 'record', 'features', 'detector', 'arm_sim')
+SINGLE = 'pipeline'  # the one process of --single-process (sphere_servo.bringup.single)
 LAST_LINES = 20  # lines of each node's output kept, to say why it exited
 
 
@@ -77,18 +87,21 @@ _LIBC = _libc() if sys.platform.startswith('linux') else None
 PR_SET_PDEATHSIG = 1
 
 
-def _die_with(parent_pid: int):
+def _die_with(parent_pid: int, nice: int = 0):
     """
-    Return the ``preexec_fn`` of a node (Linux) that dies with the launcher.
+    Return the ``preexec_fn`` of a node (Linux) that dies with the launcher, at ``nice``.
 
     The kernel sends the node SIGTERM when the launcher dies, even by SIGKILL, so no
     orphaned node keeps driving the arm (SIGTERM is the nodes' clean shutdown: the servo's
     last word is a zero twist). If the launcher died before this ran, the node is
-    terminated at once.
+    terminated at once. ``nice`` is added to the node's niceness before it runs, so every
+    thread it makes has it (a negative one needs root or CAP_SYS_NICE: PermissionError).
     """
     libc = _LIBC
 
     def preexec():
+        if nice:
+            os.nice(nice)
         if libc is not None:
             libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
             if os.getppid() != parent_pid:
@@ -138,26 +151,41 @@ class Launcher:
     out: object = sys.stdout
     env: dict | None = None  # the children's environment (default: this process's)
     children: dict = field(default_factory=dict)
+    single_process: bool = False  # the nodes in one process, SINGLE (on one executor)
+    nice: int = 0  # added to every node's niceness (negative: before other work on the CPU)
 
     def start(self, extra: dict | None = None) -> None:
         """Start every node of the scenario (``extra``: name → argv of other executables)."""
-        for name in self.scenario.nodes:
-            self._spawn(name, node_command(name) + ros_args(self.scenario))
+        for name in (SINGLE,) if self.single_process else self.scenario.nodes:
+            self._spawn(name, self._command(name))
         for name, argv in (extra or {}).items():
             self._spawn(name, node_command(name) + list(argv))
+
+    def _command(self, name: str) -> list[str]:
+        nodes = list(self.scenario.nodes) if name == SINGLE else []
+        return node_command(name) + nodes + ros_args(self.scenario)
 
     def restart(self, name: str) -> None:
         """Start ``name`` again with the same parameters (after it died or was killed)."""
         old = self.children[name]
         if old.popen.poll() is None:
             raise LaunchError(f'{name} is still running')
-        self._spawn(name, node_command(name) + ros_args(self.scenario))
+        self._spawn(name, self._command(name))
 
     def _spawn(self, name: str, cmd: list[str]) -> None:
-        env = dict(self.env if self.env is not None else os.environ, PYTHONUNBUFFERED='1')
-        popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                 text=True, env=env, start_new_session=True,
-                                 preexec_fn=_die_with(os.getpid()))
+        # the shipped Fast DDS profile unless the environment names its own (or another rmw)
+        try:
+            env = middleware_env(self.env if self.env is not None else os.environ)
+        except FileNotFoundError as exc:
+            raise LaunchError(str(exc)) from None
+        env['PYTHONUNBUFFERED'] = '1'
+        try:
+            popen = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, env=env, start_new_session=True,
+                                     preexec_fn=_die_with(os.getpid(), self.nice))
+        except subprocess.SubprocessError as exc:  # what preexec_fn raised: os.nice refused
+            raise LaunchError(f'cannot start {name} at nice {self.nice:+d} (a higher '
+                              f'priority needs root or CAP_SYS_NICE): {exc}') from None
         child = Child(name, popen)
         child.thread = threading.Thread(target=_forward, args=(child, popen.stdout, self.out),
                                         daemon=True)

@@ -42,6 +42,7 @@ class Supervisor:
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped, TwistStamped
         from sensor_msgs.msg import JointState
+        from sphere_servo.ros.qos import COMMAND, DIAGNOSTICS, MONITOR, observer, PIPELINE
         from sphere_servo.ros.vectors import DESIRED_QOS, desired_topic
 
         self.rclpy = rclpy
@@ -79,14 +80,16 @@ class Supervisor:
         sub = self.node.create_subscription
         # deep histories: under load Fast DDS repairs what loaded sockets dropped in bursts of
         # up to seconds of messages, which a shallow keep-last history would mostly discard
-        sub(DiagnosticArray, 'servo/state', self._on_state, HISTORY_DEPTH)
-        sub(DiagnosticArray, '/diagnostics', self._on_diagnostics, HISTORY_DEPTH)
+        monitor, pipeline = observer(MONITOR, HISTORY_DEPTH), observer(PIPELINE, HISTORY_DEPTH)
+        sub(DiagnosticArray, 'servo/state', self._on_state, monitor)
+        sub(DiagnosticArray, '/diagnostics', self._on_diagnostics,
+            observer(DIAGNOSTICS, HISTORY_DEPTH))
         sub(JointState, desired_topic(fset), self._on_desired, DESIRED_QOS)
-        sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, HISTORY_DEPTH)
-        sub(JointState, 'detector/measurement', self._on_meas, HISTORY_DEPTH)
+        sub(PoseStamped, 'ground_truth/camera_pose', self._on_pose, monitor)
+        sub(JointState, 'detector/measurement', self._on_meas, pipeline)
         if collect:
-            sub(JointState, f'features/{fset}', self._on_features, HISTORY_DEPTH)
-            sub(TwistStamped, 'camera/cmd_vel', self._on_twist, HISTORY_DEPTH)
+            sub(JointState, f'features/{fset}', self._on_features, pipeline)
+            sub(TwistStamped, 'camera/cmd_vel', self._on_twist, observer(COMMAND, HISTORY_DEPTH))
         from std_srvs.srv import SetBool
         for service in ('/arm_sim/go_desired', '/features/teach', '/arm_sim/go_start'):
             self.client(service)

@@ -68,9 +68,8 @@ Clock modes (parameter ``clock_mode``)
                   published at once and *re-published* unchanged (same stamp) when
                   ``idle_republish_period`` wall seconds pass with no command after it (the
                   first one and the one after a jump; any while a servo is enabled), so a
-                  subscriber that connects late (or restarts) still gets it; all topics
-                  are volatile and reliable, with a history of 30 images and 100 of the
-                  other messages.
+                  subscriber that connects late (or restarts) still gets it. The QoS of each
+                  topic is :mod:`sphere_servo.ros.qos`'s (all reliable and volatile).
 
 Poses in parameters are 6 numbers ``[x, y, z, roll, pitch, yaw]`` (metres, radians,
 ``R = Rz(yaw) Ry(pitch) Rx(roll)``). ``desired_cMo`` / ``start_cMo`` give the target in the
@@ -98,19 +97,22 @@ from sphere_servo.ros.guard import guarded, guarded_service
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.markers import marker_array, MARKERS_QOS, WORLD_FRAME
 from sphere_servo.ros.params import declare_all, install_set_callback, run
+from sphere_servo.ros.qos import (CLOCK, COMMAND, MONITOR, SENSOR_INFO_WRITER,
+                                  SENSOR_WRITER)
 from sphere_servo.ros.vectors import ENABLED_QOS
 from sphere_servo.sim.arm import CAMERA_FRAME
 from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-DEPTH, IMAGE_DEPTH = 100, 30  # publisher history (messages)
 HARDWARE_ID = 'ur5'
 PUBLISHERS_CHECK = 1.0  # s (wall) between two looks at the command topic's publishers
 
 
 class ArmSim(Node):
     """See the module docstring."""
+
+    NEEDS_MESSAGE_INFO = True  # _on_cmd reads the publication sequence number
 
     def __init__(self, **kwargs):
         super().__init__('arm_sim', **kwargs)
@@ -119,18 +121,18 @@ class ArmSim(Node):
         # runtime changes: the poses and start_mode (read by the go_* services); the others
         # are read-only
         install_set_callback(self, lambda: core.params, lambda p: setattr(core, 'params', p))
-        # history deep enough that a recorder or a monitor falling behind for a second (a
-        # loaded machine) loses nothing: a reliable publisher drops what leaves its history
-        self.pub_image = self.create_publisher(Image, 'camera/image_raw', IMAGE_DEPTH)
-        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', DEPTH)
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', DEPTH)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', DEPTH)
-        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
+        # QoS of each topic: sphere_servo.ros.qos
+        self.pub_image = self.create_publisher(Image, 'camera/image_raw', SENSOR_WRITER)
+        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info',
+                                              SENSOR_INFO_WRITER)
+        self.pub_joints = self.create_publisher(JointState, 'joint_states', MONITOR)
+        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', MONITOR)
+        self.pub_clock = self.create_publisher(Clock, '/clock', CLOCK)
         self.pub_markers = self.create_publisher(MarkerArray, '~/markers', MARKERS_QOS)
         if core.markers_error:
             self.get_logger().warn(core.markers_error)
         self.sub_cmd = self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_cmd,
-                                                10)
+                                                COMMAND)
         self.sub_enabled = self.create_subscription(Bool, 'servo/enabled', self._on_enabled,
                                                     ENABLED_QOS)
         for name, jump in (('~/reset', core.reset), ('~/go_start', lambda: core.go('start')),

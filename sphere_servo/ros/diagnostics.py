@@ -17,9 +17,9 @@ from __future__ import annotations
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from sphere_servo.pipeline.common import NodeStatus
+from sphere_servo.ros.qos import DIAGNOSTICS, MONITOR
 from std_msgs.msg import Header
 
-STATE_DEPTH = 100
 DIAGNOSTICS_PERIOD = 1.0  # s, wall clock
 
 
@@ -45,8 +45,8 @@ class StatusPublisher:
         self.node = node
         self.name = f'{node.get_name()}: state'
         self.hardware_id = hardware_id
-        self.pub_state = node.create_publisher(DiagnosticArray, '~/state', STATE_DEPTH)
-        self.pub_diagnostics = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.pub_state = node.create_publisher(DiagnosticArray, '~/state', MONITOR)
+        self.pub_diagnostics = node.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS)
         self.status = status
         self._sent: tuple | None = None  # (level, message) last on /diagnostics
         node.create_timer(DIAGNOSTICS_PERIOD, self.publish_diagnostics,

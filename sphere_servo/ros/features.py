@@ -42,6 +42,7 @@ from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
+from sphere_servo.ros.qos import PIPELINE, SENSOR
 from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
                                       measurement_from_msg)
 from std_msgs.msg import Header
@@ -56,7 +57,7 @@ class FeaturesNode(Node):
     def __init__(self, **kwargs):
         super().__init__('features', **kwargs)
         self.core = FeaturesCore(declare_all(self, FeaturesParams))
-        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', 100)
+        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', PIPELINE)
                      for name in self.core.names}
         self.pubs_desired = {name: self.create_publisher(JointState, desired_topic(name),
                                                          DESIRED_QOS)
@@ -64,9 +65,10 @@ class FeaturesNode(Node):
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.log = ThrottledLog(self.get_logger())
         self.last_header: Header | None = None  # of the latest measurement
-        self.create_subscription(JointState, 'detector/measurement', self._on_measurement, 10)
+        self.create_subscription(JointState, 'detector/measurement', self._on_measurement,
+                                 PIPELINE)
         self.create_service(Trigger, '~/teach', self._srv_teach)
-        self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, 10)
+        self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, SENSOR)
         if self.core.has_desired:  # a pose (no image of the run: a zero stamp) or a kept one
             self._publish_desired(Header(stamp=stamp_from_ns(self.core.desired_stamp_ns),
                                          frame_id=self.core.desired_frame_id))

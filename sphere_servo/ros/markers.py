@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import Point, Vector3
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sphere_servo.ros.conversions import pose_from_se3
+from sphere_servo.ros.qos import LATCHED
 from sphere_servo.sim.scene import MarkerKind, MarkerSpec
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
@@ -21,8 +21,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 WORLD_FRAME = 'world'
 # latched: the last scene reaches a viewer that subscribes later (RViz: Durability Policy
 # "Transient Local"; ``ros2 topic echo --qos-durability transient_local``)
-MARKERS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+MARKERS_QOS = LATCHED
 
 
 def marker_msg(spec: MarkerSpec, header: Header) -> Marker:

@@ -21,13 +21,13 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-import rclpy.executors
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
 from sphere_servo.pipeline.config import ConfigError, read_yaml
 from sphere_servo.pipeline.params import (check_names, NodeParams, Param, ParameterError,
                                           ROS_PARAMETERS)
+from sphere_servo.ros.executors import make_executor
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
@@ -152,12 +152,14 @@ def _refuse(name: str, exc) -> None:
 
 def run(node_factory, name: str, args=None) -> None:
     """
-    Run a node until Ctrl-C, SIGTERM or an external shutdown.
+    Run the node, or list of nodes, that ``node_factory`` returns until Ctrl-C or SIGTERM.
 
-    Then ``on_shutdown()`` (if the node has one: the servo's last word is a zero twist),
-    ``destroy_node()`` and ``rclpy.try_shutdown()``. rclpy's own signal handler is disabled
-    so the context is still valid in ``on_shutdown()``. A bad params file, a refused or an
-    undeclared parameter end the process with a one-line message and exit code 2.
+    An external shutdown ends it too. Then ``on_shutdown()`` (if the node has one: the
+    servo's last word is a zero twist), ``destroy_node()`` and ``rclpy.try_shutdown()``;
+    several nodes share one executor and are shut down in the list's order. rclpy's own
+    signal handler is disabled so the context is still valid in ``on_shutdown()``. A bad
+    params file, a refused or an undeclared parameter end the process with a one-line
+    message and exit code 2.
     """
     try:
         check_params_files(sys.argv if args is None else args)
@@ -166,21 +168,27 @@ def run(node_factory, name: str, args=None) -> None:
         _refuse(name, str(exc).split(', at /')[0])  # rcl appends its source locations
     stop = StopFlag.install()
     try:
-        node = node_factory()
-        check_overrides(node)
+        made = node_factory()
+        nodes = list(made) if isinstance(made, (list, tuple)) else [made]
+        for node in nodes:
+            check_overrides(node)
     except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
             ValueError, TypeError, FileNotFoundError, ImportError, ConfigError) as exc:
         _refuse(name, exc)
     try:
-        executor = rclpy.executors.SingleThreadedExecutor()
-        executor.add_node(node)
+        executor = make_executor(message_info=any(
+            getattr(node, 'NEEDS_MESSAGE_INFO', False) for node in nodes))
+        for node in nodes:
+            executor.add_node(node)
         while rclpy.ok() and not stop.requested:  # the timeout bounds the reaction time
             executor.spin_once(timeout_sec=0.1)
     except ExternalShutdownException:
         pass
     finally:
-        on_exit = getattr(node, 'on_shutdown', None)
-        if on_exit is not None:
-            on_exit()
-        node.destroy_node()
+        for node in nodes:
+            on_exit = getattr(node, 'on_shutdown', None)
+            if on_exit is not None:
+                on_exit()
+        for node in nodes:
+            node.destroy_node()
         rclpy.try_shutdown()

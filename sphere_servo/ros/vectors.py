@@ -15,17 +15,16 @@ image it was taught from).
 """
 from __future__ import annotations
 
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from sphere_servo.core.measurement import MeasurementError
 from sphere_servo.pipeline.vectors import FEATURE_NAMES, features_from_vectors, Measurement
+from sphere_servo.ros.qos import LATCHED
 from sphere_servo.vision.detector import Detection
 from std_msgs.msg import Header
 
 # the desired features: the last one kept for late subscribers (``ros2 topic echo`` needs
 # ``--qos-durability transient_local`` to see it)
-DESIRED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+DESIRED_QOS = LATCHED
 #: the servo's ``~/enabled`` (std_msgs/Bool), latched the same way: a late subscriber
 #: (arm_sim, which refuses its jumps while the servo is enabled) gets the current mode
 ENABLED_QOS = DESIRED_QOS

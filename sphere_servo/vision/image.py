@@ -9,6 +9,8 @@ Images as ndarrays (no ROS): raw ``sensor_msgs/Image`` buffers, checks, colour t
 """
 from __future__ import annotations
 
+from array import array
+
 import numpy as np
 
 from sphere_servo.core.types import Image
@@ -47,8 +49,10 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     if step < row:
         raise ValueError(f'step {step} is smaller than a row of {width} {encoding} pixels '
                          f'({row} bytes)')
-    if not isinstance(data, (bytes, bytearray, memoryview, np.ndarray)):
-        data = bytes(data)         # e.g. rclpy's array.array or a list of ints
+    if isinstance(data, array) and data.itemsize == 1:
+        data = memoryview(data)    # rclpy's uint8[]: read in place (a copy costs ~0.3 ms)
+    elif not isinstance(data, (bytes, bytearray, memoryview, np.ndarray)):
+        data = bytes(data)         # e.g. a list of ints
     buf = np.frombuffer(data, dtype=np.uint8)
     if buf.size != step * height:
         raise ValueError(f'image data has {buf.size} bytes, but step·height = '

@@ -1,0 +1,78 @@
+"""
+The QoS of every topic of the pipeline, in one place (the README's topic table lists them).
+
+Every topic is reliable: in lockstep exactly one image is in flight and the loop needs each
+image, measurement, features message and twist (a lost one holds the arm still until the
+servo's watchdog); on one host, with the shipped Fast DDS profile, reliability costs an
+acknowledgement, not a retransmission. Keep-last everywhere; the depth is what a topic
+carries:
+
+- :data:`SENSOR` (``camera/image_raw``, ``camera/camera_info``, ``detector/overlay``):
+  depth 5. A reader that falls behind takes the newest frames, not a backlog of stale ones
+  (5 frames: 83 ms at 60 Hz of slack for a reader the scheduler holds back). Best effort
+  would save nothing here and would lose the image lockstep waits for.
+  The camera's writer keeps more (:data:`SENSOR_WRITER`, 30 images, 100 camera_infos: a
+  second at 30 Hz): a reliable writer drops for a reader what leaves its history, and a
+  recorder the scheduler holds back must still get every frame; each reader's own depth
+  stays 5.
+- :data:`COMMAND` (``camera/cmd_vel``): depth 10; the arm executes the newest.
+- :data:`PIPELINE` (``detector/measurement``, ``features/<set>``): depth 10, per frame.
+- :data:`MONITOR` (``~/state``, ``joint_states``, ``ground_truth/camera_pose``): depth
+  100. Their readers are monitors (the launcher's supervisor, a recorder, a plot) that may
+  fall behind on a loaded machine: a reliable writer drops for a reader what leaves its
+  history, and the supervisor must see the first ``converged`` state.
+- :data:`DIAGNOSTICS` (``/diagnostics``): depth 10, as diagnostic_updater publishes.
+- :data:`CLOCK` (``/clock``): depth 10 (rclpy's time source subscribes best effort, which
+  a reliable writer serves).
+- :data:`LATCHED` (``features/<set>/desired``, ``/servo/enabled``, ``arm_sim/markers``):
+  transient-local, depth 1: a late subscriber gets the last desired, the servo's mode (arm_sim
+  refuses jumps while it is enabled) and the whole 3-D scene.
+
+:func:`observer` gives a subscription that matches a topic's publishers with a history of
+its own (the supervisor, tests): the same reliability and durability, another depth.
+"""
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+
+def _reliable(depth: int, latched: bool = False) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
+
+
+SENSOR = _reliable(5)
+SENSOR_WRITER = _reliable(30)
+SENSOR_INFO_WRITER = _reliable(100)
+COMMAND = _reliable(10)
+PIPELINE = _reliable(10)
+MONITOR = _reliable(100)
+DIAGNOSTICS = _reliable(10)
+CLOCK = _reliable(10)
+LATCHED = _reliable(1, latched=True)
+
+# topic (relative name; ``<node>/state`` for ``~/state``) → its QoS
+TOPICS = {
+    'camera/image_raw': SENSOR,
+    'camera/camera_info': SENSOR,
+    'detector/overlay': SENSOR,
+    'camera/cmd_vel': COMMAND,
+    'detector/measurement': PIPELINE,
+    'features/<set>': PIPELINE,
+    'features/<set>/desired': LATCHED,
+    '/servo/enabled': LATCHED,
+    'arm_sim/markers': LATCHED,
+    'joint_states': MONITOR,
+    'ground_truth/camera_pose': MONITOR,
+    '<node>/state': MONITOR,
+    '/diagnostics': DIAGNOSTICS,
+    '/clock': CLOCK,
+}
+
+
+def observer(profile: QoSProfile, depth: int = 1000) -> QoSProfile:
+    """Return a subscription QoS that matches ``profile``'s publishers, keep-last ``depth``."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=profile.reliability, durability=profile.durability)
