@@ -208,7 +208,8 @@ def camera_section(s: dict) -> list[str]:
              f'wide starts are turned away from the sphere by up to {cells.WIDE_TURN_DEG:.0f}° '
              '(the sphere and both marks in both wide images).', '',
              '| starts | set | camera | runs | success | not in view at the start | '
-             'left the image | other failures |', '|---|---|---|---|---|---|---|---|']
+             'left the image | P1 hidden | other failures |',
+             '|---|---|---|---|---|---|---|---|---|']
     for starts, conds in CAMERA_ROWS:
         for fs in cells.SETS:
             for cond in conds:
@@ -217,20 +218,25 @@ def camera_section(s: dict) -> list[str]:
                     continue
                 k_start = _count(s, cond, fs, cells.NOT_IN_VIEW)
                 k_left = _count(s, cond, fs, 'left the image')
-                other = v['n'] * (100.0 - v['success']) / 100.0 - k_start - k_left
+                k_hidden = _count(s, cond, fs, 'target lost: mark P1 is hidden')
+                other = v['n'] * (100.0 - v['success']) / 100.0 - k_start - k_left - k_hidden
                 cam = cells.CAMERA_OF.get(cond, 'pinhole')
                 lines.append(f"| {starts} | {fs} | {cam} | {v['n']} | {v['success']:.1f} % | "
-                             f"{100.0 * k_start / v['n']:.1f} % | {100.0 * k_left / v['n']:.1f} % "
-                             f"| {100.0 * other / v['n']:.1f} % |")
+                             + ' | '.join(f'{100.0 * k / v["n"]:.1f} %'
+                                          for k in (k_start, k_left, k_hidden, other)) + ' |')
     lines += ['', "- **not in view at the start**: the target is outside the camera's image "
               'from the first frame (no run): the pinhole on most wide starts.',
               '- **left the image**: the run converged but the sphere centre or a mark left '
               "the camera's image on the way; a camera that sees 180°+ keeps them in view "
               "along the paths that leave a 56° pinhole's.",
-              '- **other failures** are the camera-independent ones of the sections below '
-              '(a mark turning behind the limb, ibvs points behind the image plane): with exact '
-              'observations on the projection sphere the features and the twists are the same '
-              'through every camera, so those counts agree between cameras.']
+              '- **P1 hidden**: the mark turned behind the limb on the way (see *Why runs '
+              'fail* below: s_cc orbits the sphere; ibvs retreats and rolls), which no camera '
+              'can see. The wide starts begin with large rotations, so s_cc loses P1 on most '
+              'of them and s_n on a few. With exact observations on the projection sphere the '
+              'features and the twists are the same through every camera, so these counts '
+              'agree between the wide cameras.',
+              '- **other failures**: any other cause (the sphere not entirely in front of the '
+              'camera: ibvs).']
     return lines
 
 
