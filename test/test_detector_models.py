@@ -214,6 +214,6 @@ def test_plumb_bob_distortion_is_applied():
     e_s, e_r, _, missed = errors(det, frames, cam)
     print(check(e_s, e_r, missed, len(frames)))
     n_s, _, _, _ = errors(det, frames, CameraIntrinsics())
-    print(f"without the distortion: s_n,t median {np.median(n_s):.3f} %")
+    print(f'without the distortion: s_n,t median {np.median(n_s):.3f} %')
     assert np.median(n_s) > 5 * np.median(e_s) and np.median(n_s) > 1.0, \
         (np.median(n_s), np.median(e_s))

@@ -151,7 +151,9 @@ def test_detector_survives_a_flood(detector):
     flooded = d.meas[first:]
     assert flooded and all(len(m.name) == 0 for m in flooded)  # every answer empty
     assert alive(d.proc) and all_finite(d.meas, 'position')
-    assert in_log(d.proc, 'image rejected', '4x4')  # the size, throttled, named
+    # the size, throttled, named (the log line may reach us after the answers do)
+    assert d.g.spin(WAIT, until=lambda: in_log(d.proc, 'image rejected', '4x4')), \
+        d.proc.log()[-2000:]
     assert 'b_x' in d.until(d.info(), _found)[0].name
 
 

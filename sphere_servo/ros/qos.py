@@ -11,10 +11,9 @@ carries:
   depth 5. A reader that falls behind takes the newest frames, not a backlog of stale ones
   (5 frames: 83 ms at 60 Hz of slack for a reader the scheduler holds back). Best effort
   would save nothing here and would lose the image lockstep waits for.
-  The camera's writer keeps more (:data:`SENSOR_WRITER`, 30 images, 100 camera_infos: a
-  second at 30 Hz): a reliable writer drops for a reader what leaves its history, and a
-  recorder the scheduler holds back must still get every frame; each reader's own depth
-  stays 5.
+  The camera's writer keeps more (:data:`WRITERS`: 30 images, 100 camera_infos, a second
+  at 30 Hz): a reliable writer drops for a reader what leaves its history, and a recorder
+  the scheduler holds back must still get every frame; each reader's own depth stays 5.
 - :data:`COMMAND` (``camera/cmd_vel``): depth 10; the arm executes the newest.
 - :data:`PIPELINE` (``detector/measurement``, ``features/<set>``): depth 10, per frame.
 - :data:`MONITOR` (``~/state``, ``joint_states``, ``ground_truth/camera_pose``): depth
@@ -69,6 +68,13 @@ TOPICS = {
     '<node>/state': MONITOR,
     '/diagnostics': DIAGNOSTICS,
     '/clock': CLOCK,
+}
+
+
+# topics whose writer keeps a deeper history than the table's readers (``SENSOR_WRITER``)
+WRITERS = {
+    'camera/image_raw': SENSOR_WRITER,
+    'camera/camera_info': SENSOR_INFO_WRITER,
 }
 
 
