@@ -66,11 +66,11 @@ def test_a_callback_that_reads_its_message_info_gets_it(monkeypatch):
     A node whose callback takes (msg, info) spins where info is passed, and gets it.
 
     rclpy's EventsExecutor calls callbacks with the message only: arm_sim's one-driver rule
-    (the publication sequence number) failed on every command on it. Every node class with
-    such a callback says so (``NEEDS_MESSAGE_INFO``), and that executor passes the info.
+    (the publication sequence number) failed on every command on it. A process whose nodes
+    have such a callback (arm_sim's command, and only it) gets an executor that passes it.
     """
-    import inspect
     from sphere_servo.bringup.single import NODE_CLASSES, node_classes
+    from sphere_servo.ros.executors import wants_message_info
     from std_msgs.msg import String
     monkeypatch.delenv(VARIABLE, raising=False)
     ctx = rclpy.Context()
@@ -78,15 +78,15 @@ def test_a_callback_that_reads_its_message_info_gets_it(monkeypatch):
     nodes = []
     try:
         nodes = [cls(context=ctx) for cls in node_classes(NODE_CLASSES)]
-        for n in nodes:
-            takes_info = [s.topic_name for s in n.subscriptions
-                          if len(inspect.signature(s.callback).parameters) == 2]
-            assert bool(takes_info) == getattr(n, 'NEEDS_MESSAGE_INFO', False), (
-                n.get_name(), takes_info)
+        assert {n.get_name(): wants_message_info([n]) for n in nodes} == {
+            'servo': False, 'features': False, 'detector': False, 'arm_sim': True}
         probe = rclpy.create_node('info_probe', context=ctx)
         nodes.append(probe)
         got = []
+        probe.create_subscription(String, 'info_probe', lambda m: None, 10)
+        assert not wants_message_info([probe])
         probe.create_subscription(String, 'info_probe', lambda m, i: got.append(i), 10)
+        assert wants_message_info([probe])
         pub = probe.create_publisher(String, 'info_probe', 10)
         executor = make_executor(ctx, message_info=True)
         executor.add_node(probe)

@@ -111,8 +111,6 @@ PUBLISHERS_CHECK = 1.0  # s (wall) between two looks at the command topic's publ
 class ArmSim(Node):
     """See the module docstring."""
 
-    NEEDS_MESSAGE_INFO = True  # _on_cmd reads the publication sequence number
-
     def __init__(self, **kwargs):
         super().__init__('arm_sim', **kwargs)
         self.core = core = ArmSimCore(declare_all(self, ArmSimParams))

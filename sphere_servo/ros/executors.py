@@ -12,9 +12,9 @@ processes and from 10.9 ms to 6.2–7.3 ms in one (both under the machine's othe
 run every callback on the spinning thread, one at a time.
 
 The EventsExecutor calls a subscription's callback with the message only, never with its
-``MessageInfo``: a process with a node that reads it (``NEEDS_MESSAGE_INFO``: arm_sim,
-whose one-driver rule reads each command's publication sequence number) spins on the
-``SingleThreadedExecutor``. arm_sim is not on the image → twist path, so this costs the
+``MessageInfo``: a process with a callback that takes it (:func:`wants_message_info`:
+arm_sim, whose one-driver rule reads each command's publication sequence number) spins on
+the ``SingleThreadedExecutor``. arm_sim is not on the image → twist path, so this costs the
 three-process pipeline nothing; one process (``pipeline``) spins all four on it.
 
 ``SPHERE_SERVO_EXECUTOR=single_threaded`` selects rclpy's classic executor instead;
@@ -36,6 +36,19 @@ def executor_choice(env=None) -> str:
     if choice not in CHOICES:
         raise ValueError(f'{VARIABLE}={choice!r}: use one of {CHOICES}')
     return choice
+
+
+def wants_message_info(nodes) -> bool:
+    """
+    Whether a subscription of ``nodes`` has a callback that takes its ``MessageInfo``.
+
+    That is rclpy's own decision from the callback's signature, made when the subscription
+    is created; it has no public accessor.
+    """
+    from rclpy.subscription import Subscription
+    info = Subscription.CallbackType.WithMessageInfo
+    return any(getattr(sub, '_callback_type', None) is info
+               for node in nodes for sub in node.subscriptions)
 
 
 def make_executor(context=None, message_info: bool = False):

@@ -27,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 from sphere_servo.pipeline.config import ConfigError, read_yaml
 from sphere_servo.pipeline.params import (check_names, NodeParams, Param, ParameterError,
                                           ROS_PARAMETERS)
-from sphere_servo.ros.executors import make_executor
+from sphere_servo.ros.executors import make_executor, wants_message_info
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
@@ -176,8 +176,7 @@ def run(node_factory, name: str, args=None) -> None:
             ValueError, TypeError, FileNotFoundError, ImportError, ConfigError) as exc:
         _refuse(name, exc)
     try:
-        executor = make_executor(message_info=any(
-            getattr(node, 'NEEDS_MESSAGE_INFO', False) for node in nodes))
+        executor = make_executor(message_info=wants_message_info(nodes))
         for node in nodes:
             executor.add_node(node)
         while rclpy.ok() and not stop.requested:  # the timeout bounds the reaction time
