@@ -48,6 +48,28 @@ def test_camera_from_info_applies_the_relative_error_or_refuses():
     assert isinstance(nan, Refusal) and 'finite' in nan.reason
 
 
+def test_equal_camera_infos_give_one_camera_and_any_change_another():
+    """The camera of each image's camera_info is built once, and never kept past a change."""
+    k = np.asarray(INFO['k'], dtype=float)  # as rclpy gives it: an ndarray, new each message
+    first = camera_from_info(INFO['width'], INFO['height'], k.copy(), list(INFO['d']))
+    again = camera_from_info(INFO['width'], INFO['height'], k.copy(), np.asarray(INFO['d']))
+    assert again is first
+    moved = k.copy()
+    moved[2] += 0.5
+    other = camera_from_info(INFO['width'], INFO['height'], moved, INFO['d'])
+    assert other is not first and other.u0 == pytest.approx(first.u0 + 0.5)
+    assert camera_from_info(INFO['width'], INFO['height'], k, INFO['d'],
+                            intrinsics_error=(0.1, 0, 0, 0)).px == pytest.approx(660.0)
+    assert camera_from_info(INFO['width'], INFO['height'], k, INFO['d']) is first
+    for _ in range(2):  # a refusal each time (NaN equals nothing, not even a cached NaN)
+        nan = k.copy()
+        nan[0] = np.nan
+        assert isinstance(camera_from_info(INFO['width'], INFO['height'], nan, INFO['d']),
+                          Refusal)
+    assert isinstance(camera_from_info(INFO['width'], INFO['height'], [[1, 0], [0, 1]],
+                                       INFO['d']), Refusal)  # not a sequence of numbers
+
+
 def test_a_refused_camera_info_leaves_no_camera():
     c = DetectorCore(DetectorParams.from_mapping({'intrinsics_error': [0.1, 0, 0, 0]}))
     assert isinstance(c.on_camera_info(*info_args()), CameraIntrinsics)

@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
+from functools import lru_cache
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
@@ -53,8 +54,29 @@ def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[fl
 
     The model is :func:`~sphere_servo.core.camera_models.camera_from_camera_info_fields`'s
     (which refuses a K or a distortion no camera has); ``with_error`` names the error
-    parameter that makes the camera impossible.
+    parameter that makes the camera impossible. A camera_info comes with every image, almost
+    always the same one: equal fields give the same (immutable) camera or refusal without
+    building it again, and the same object, so what is derived from a camera (the
+    detector's lift tables) is kept too.
     """
+    try:
+        key = (width, height, tuple(float(x) for x in k),
+               None if d is None else tuple(float(x) for x in d),
+               tuple(float(x) for x in intrinsics_error), str(distortion_model))
+    except (TypeError, ValueError):  # not numbers: the builder says what is wrong
+        return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
+    try:
+        return _camera_from_key(*key)
+    except TypeError:  # an unhashable width or height
+        return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
+
+
+@lru_cache(maxsize=16)
+def _camera_from_key(width, height, k, d, intrinsics_error, distortion_model):
+    return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
+
+
+def _camera_from_info(width, height, k, d, intrinsics_error, distortion_model):
     try:
         cam = camera_from_camera_info_fields(width, height, k, d, distortion_model)
         ex, ey, eu, ev = intrinsics_error
