@@ -13,7 +13,10 @@ each case in fresh processes, 640×480 rgb8 at 30 Hz, reliable, discovery on loc
   right before the image was published: three DDS hops and the three callbacks);
 - the pipeline in single-process mode (feeder, detector, features and servo on one
   executor, as ``launcher --single-process`` runs the nodes): the same figure;
-- twist *arrival* in this process − image stamp (one hop more), for information.
+- twist *arrival* in this process − image stamp (one hop more), for information;
+- the floor of the same path (``benchmarks.relay``): three relays that answer each message
+  at once with an empty one on the pipeline's topics, QoS and executor, in three processes
+  and in one: the hops and callbacks without the nodes' work, for information.
 
 Median, p95, p99 and max, each with its baseline beside it and the ratio. Targets: the
 profiled hop ≤ 0.5× the default hop; the 3-process pipeline ≤ 2× the profiled two-process
@@ -31,6 +34,7 @@ from __future__ import annotations
 from contextlib import nullcontext
 import os
 from pathlib import Path
+import select
 import signal
 import subprocess
 import sys
@@ -69,6 +73,18 @@ def _start(mode: str, rate: float, env: dict, nice: int = 0) -> dict[str, subpro
     elif mode != 'single':
         raise ValueError(f'mode must be processes or single, not {mode!r}')
     return procs
+
+
+def _stop(procs: dict[str, subprocess.Popen]) -> None:
+    """SIGINT every process still running; kill one that does not end in 10 s."""
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
 
 
 def pipeline(mode: str, rate: float = 30.0, seconds: float = 10.0,
@@ -152,14 +168,7 @@ def pipeline(mode: str, rate: float = 30.0, seconds: float = 10.0,
         procs['feeder'].send_signal(signal.SIGINT)
         stamps = _last_json(procs['feeder'].communicate(timeout=30)[0], 'feeder')['stamps']
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        _stop(procs)
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
@@ -169,6 +178,44 @@ def pipeline(mode: str, rate: float = 30.0, seconds: float = 10.0,
     return {'latency_ms': np.array(ages) * 1e3, 'arrival_ms': np.array(arrivals) * 1e3,
             'sent': len(window), 'received': sum(t in answered for t in window), 'rss': rss,
             'measured': len(set(window) & {t_of(m.header) for m in measured})}
+
+
+def relay_floor(mode: str, rate: float = 30.0, seconds: float = 10.0,
+                domain: int | None = None, warmup: float = 1.0) -> dict:
+    """
+    Run the relays of ``benchmarks.relay`` on the feeder's frames; return their latency.
+
+    ``mode``: ``processes`` (feeder and three relays, four processes) or ``single`` (one);
+    the frames of the first ``warmup`` s after the first one came through are left out.
+    ``{'latency_ms', 'sent', 'received'}`` (sent = received: the floor's time, not losses).
+    """
+    domain = domain if domain is not None else 1 + (os.getpid() * 19 + 7) % 100
+    env = hop_env(domain, True)
+    relay = [sys.executable, '-m', 'benchmarks.relay']
+    cmds = {'servo': [*relay, 'servo'], 'features': [*relay, 'features'],
+            'detector': [*relay, 'detector'],
+            'feeder': [sys.executable, '-m', 'benchmarks.feeder', 'feeder', '--rate', str(rate)]}
+    if mode == 'single':
+        cmds = {'servo': [*relay, 'single', '--rate', str(rate)]}
+    elif mode != 'processes':
+        raise ValueError(f'mode must be processes or single, not {mode!r}')
+    procs = {n: subprocess.Popen(c, env=env, text=True, stderr=subprocess.DEVNULL,
+                                 stdout=subprocess.PIPE if n == 'servo' else subprocess.DEVNULL)
+             for n, c in cmds.items()}
+    try:
+        if not select.select([procs['servo'].stdout], [], [], 60.0)[0]:
+            raise RuntimeError(f'relay floor, {mode}: no frame came through in 60 s')
+        first = procs['servo'].stdout.readline()  # EOF ('') if it died before
+        t0 = _last_json(first, 'relay servo')['first'] + warmup
+        time.sleep(warmup + seconds)
+        procs['servo'].send_signal(signal.SIGINT)
+        res = _last_json(procs['servo'].communicate(timeout=30)[0], 'relay servo')
+    finally:
+        _stop(procs)
+    lat = np.array([x for t, x in zip(res['stamps'], res['latency_ms']) if t >= t0])
+    if lat.size == 0:
+        raise RuntimeError(f'relay floor, {mode}: no frame came through')
+    return {'latency_ms': lat, 'sent': lat.size, 'received': lat.size}
 
 
 def _unanswered_rows(label: str, r: dict) -> list[dict]:
@@ -202,6 +249,7 @@ def run(quick: bool = False) -> list[dict]:
             inproc = hop(1, True, seconds=seconds)
             procs = pipeline('processes', seconds=seconds)
             single = pipeline('single', seconds=seconds)
+            floor = {m: relay_floor(m, seconds=seconds) for m in ('processes', 'single')}
             raised = _raised(seconds)
         rows += _rows(f'loop: bare hop, 2 processes, defaults{tag}', default, None, None,
                       'baseline')
@@ -216,6 +264,10 @@ def run(quick: bool = False) -> list[dict]:
             rows.append(row)
         rows += _rows(f'loop: image stamp → twist publish, single process{tag}', single,
                       inproc, '1-process hop', '≤ 1.5× (median)')
+        rows += _rows(f'loop: relay floor (no work), 3 processes{tag}', floor['processes'],
+                      profiled, 'profiled 2-process hop', 'information (the floor)')[:-1]
+        rows += _rows(f'loop: relay floor (no work), single process{tag}', floor['single'],
+                      inproc, '1-process hop', 'information (the floor)')[:-1]
         for mode, r in raised.items():
             label = f'loop: image stamp → twist publish, {mode}, nodes at nice {NICE}{tag}'
             if mode == 'single process':
