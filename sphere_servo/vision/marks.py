@@ -142,6 +142,24 @@ def ball_centre(q: np.ndarray, w: np.ndarray) -> Vec3:
     return m / max(float(np.sqrt(m @ m)), 1e-300)
 
 
+def components(m: np.ndarray, n: int) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+    """
+    Label the 8-connected components of a 0/1 uint8 mask ``m`` with ``n`` pixels set.
+
+    Returns ``cv2.connectedComponentsWithStats(m, connectivity=8)``'s count (background
+    included), labels and stats; for one component (the usual mark) only its count 2, found
+    by one flood fill from the first set pixel — sequential, where OpenCV's labelling hands
+    a mask of a few rows to its thread pool, which waits for a free core on a loaded
+    machine. ``m`` is overwritten.
+    """
+    x = int(m.reshape(-1).argmax())
+    area = cv2.floodFill(m, None, (x % m.shape[1], x // m.shape[1]), 2, 0, 0, 8)[0]
+    if area == n:
+        return 2, None, None
+    nlab, lab, st, _ = cv2.connectedComponentsWithStats((m > 0).view(np.uint8), connectivity=8)
+    return nlab, lab, st
+
+
 class MarkFinder:
     """
     Find the marks and measure their centres, configured by the colours.
@@ -238,7 +256,7 @@ class MarkFinder:
             rel = pts - (lx, ly)
             ry, rx = rel[:, 1], rel[:, 0]
             m[ry, rx] = 1
-            nlab, lab, st, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+            nlab, lab, st = components(m, len(pts))
             if nlab < 2:
                 continue
             if nlab > 2:
