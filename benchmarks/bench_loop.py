@@ -2,7 +2,9 @@
 Benchmark of the ROS pipeline's latency against the bare image hop (issues 5 and 17).
 
 Side by side in one run, idle and under a CPU load of two busy processes (rows ``+2 busy``),
-each case in fresh processes, 640×480 rgb8 at 30 Hz, reliable, discovery on localhost:
+each case in fresh processes, each process in a session of its own as the launcher starts
+the nodes (with the kernel's autogroup scheduling, CPU time is shared between sessions
+first), 640×480 rgb8 at 30 Hz, reliable, discovery on localhost:
 
 - the bare two-process image hop (``benchmarks.hop``) with Fast DDS's defaults and with the
   shipped profile (``config/fastdds.xml``), and the bare one-process hop with the profile
@@ -63,7 +65,7 @@ def _start(mode: str, rate: float, env: dict, nice: int = 0) -> dict[str, subpro
     """Start the pipeline's processes: ``processes`` (3 nodes + feeder) or ``single``."""
     def popen(cmd, out=subprocess.DEVNULL):
         return subprocess.Popen([sys.executable, *cmd], env=env, stdout=out,
-                                stderr=subprocess.DEVNULL, text=True,
+                                stderr=subprocess.DEVNULL, text=True, start_new_session=True,
                                 preexec_fn=(lambda: os.nice(nice)) if nice else None)
     feeder = ['-m', 'benchmarks.feeder', 'feeder' if mode == 'processes' else 'single',
               '--rate', str(rate)]
@@ -200,7 +202,8 @@ def relay_floor(mode: str, rate: float = 30.0, seconds: float = 10.0,
     elif mode != 'processes':
         raise ValueError(f'mode must be processes or single, not {mode!r}')
     procs = {n: subprocess.Popen(c, env=env, text=True, stderr=subprocess.DEVNULL,
-                                 stdout=subprocess.PIPE if n == 'servo' else subprocess.DEVNULL)
+                                 stdout=subprocess.PIPE if n == 'servo' else subprocess.DEVNULL,
+                                 start_new_session=True)
              for n, c in cmds.items()}
     try:
         if not select.select([procs['servo'].stdout], [], [], 60.0)[0]:
