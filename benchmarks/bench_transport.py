@@ -28,9 +28,17 @@ VGA, HD = (640, 480), (1280, 720)
 
 
 @contextmanager
-def busy_load(n: int = 2):
-    """Keep ``n`` processes spinning on the CPU (at normal priority) for the block's duration."""
-    procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(n)]
+def busy_load(n: int = 2, own_sessions: bool = False):
+    """
+    Keep ``n`` processes spinning on the CPU (at normal priority) for the block's duration.
+
+    ``own_sessions``: each in a session of its own, as an unrelated program runs. With the
+    kernel's autogroup scheduling (``/proc/sys/kernel/sched_autogroup_enabled``, on here) CPU
+    time is shared between sessions first, so loops in the caller's session load mostly the
+    caller (and the launcher's nodes, each in a session of its own, little).
+    """
+    procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass'],
+                              start_new_session=own_sessions) for _ in range(n)]
     try:
         yield procs
     finally:
