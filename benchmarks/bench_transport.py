@@ -22,15 +22,27 @@ import sys
 
 from benchmarks.hop import hop_env
 import numpy as np
+from sphere_servo.bringup.processes import die_with
 
 RATE = 30.0
 VGA, HD = (640, 480), (1280, 720)
 
 
 @contextmanager
-def busy_load(n: int = 2):
-    """Keep ``n`` processes spinning on the CPU (at normal priority) for the block's duration."""
-    procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(n)]
+def busy_load(n: int = 2, own_sessions: bool = False):
+    """
+    Keep ``n`` processes spinning on the CPU (at normal priority) for the block's duration.
+
+    ``own_sessions``: each in a session of its own, as an unrelated program runs, at this
+    process's niceness, and ended if this process dies (as the launcher's nodes:
+    :func:`~sphere_servo.bringup.processes.die_with`). With the kernel's autogroup scheduling
+    (on here) CPU time is shared between sessions first, so loops in the caller's session
+    load mostly the caller (and the launcher's nodes, each in a session of its own, little).
+    """
+    procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass'],
+                              start_new_session=own_sessions,
+                              preexec_fn=die_with(os.getpid()) if own_sessions else None)
+             for _ in range(n)]
     try:
         yield procs
     finally:

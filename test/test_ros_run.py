@@ -6,9 +6,13 @@ An asynchronous ``KeyboardInterrupt`` lands wherever Python happens to be; insid
 node exited with code 1. Here a node signals itself in the middle of a callback, which makes
 the moment deterministic: the callback must run to its end, ``on_shutdown`` must follow, and
 the process must exit 0. (With the old handler the callback stopped at the signal.)
+
+And it freezes what the start-up made before the first callback (``gc.freeze``), so that a
+full collection, run inside whichever callback allocates, no longer walks it.
 """
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 import subprocess
@@ -47,19 +51,75 @@ print('run returned', flush=True)
 """
 
 
-@pytest.mark.parametrize('sig', ['SIGINT', 'SIGTERM'])
-def test_a_signal_stops_the_loop_without_interrupting_a_callback(sig, tmp_path):
+def _probe(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run a probe node's ``script`` in a process of its own, on a domain of its own."""
     domain, lock = _acquire_domain_id()
     env = dict(os.environ, PYTHONPATH=str(REPO), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_DOMAIN_ID=str(domain))
     env.pop('ROS_LOCALHOST_ONLY', None)
     try:
-        p = subprocess.run([sys.executable, '-c', NODE, sig], env=env, capture_output=True,
-                           text=True, timeout=60, cwd=tmp_path)
+        return subprocess.run([sys.executable, '-c', script, *args], env=env,
+                              capture_output=True, text=True, timeout=60, cwd=cwd)
     finally:
         lock.close()
+
+
+@pytest.mark.parametrize('sig', ['SIGINT', 'SIGTERM'])
+def test_a_signal_stops_the_loop_without_interrupting_a_callback(sig, tmp_path):
+    p = _probe(NODE, sig, cwd=tmp_path)
     lines = p.stdout.splitlines()
     assert p.returncode == 0, p.stdout + p.stderr
     assert lines == ['callback 1 completed 4999950000', 'on_shutdown after 1 callback(s)',
                      'run returned'], p.stdout + p.stderr
     assert 'Traceback' not in p.stderr, p.stderr
+
+
+GC_NODE = r"""
+import gc, json, os, signal, weakref
+from rclpy.node import Node
+from sphere_servo.ros.params import run
+
+
+class Garbage:
+    pass
+
+
+class Probe(Node):
+    def __init__(self):
+        super().__init__('gc_probe')
+        # what a node's start-up leaves: long-lived containers (a model, caches), and garbage
+        self.model = [{'link': [i]} for i in range(100000)]
+        cycle = Garbage()
+        cycle.self = cycle
+        self.garbage = weakref.ref(cycle)
+        del cycle
+        self.create_timer(0.05, self.tick)
+
+    def tick(self):
+        walked = [o for g in range(3) for o in gc.get_objects(generation=g)]
+        print(json.dumps({'frozen': gc.get_freeze_count(), 'walked': len(walked),
+                          'model_walked': any(o is self.model for o in walked),
+                          'garbage_left': self.garbage() is not None}), flush=True)
+        os.kill(os.getpid(), signal.SIGINT)
+
+
+run(Probe, 'gc_probe')
+"""
+
+
+def test_run_freezes_the_startup_objects_before_the_first_callback(tmp_path):
+    """
+    A full collection no longer walks what the start-up made, and its garbage is gone.
+
+    The probe's start-up makes 200,000 long-lived containers (100,000 dicts and their
+    lists) and a garbage reference cycle; in its first callback a full collection would walk
+    (``gc.get_objects`` of the three generations) far fewer objects than were frozen, none of
+    them the probe's model, and the cycle has been collected.
+    """
+    p = _probe(GC_NODE, cwd=tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    got = json.loads(p.stdout.splitlines()[0])
+    assert got['frozen'] >= 200000, got
+    assert got['walked'] < 0.05 * got['frozen'], got
+    assert not got['model_walked'], got
+    assert not got['garbage_left'], got
