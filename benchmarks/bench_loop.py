@@ -2,9 +2,10 @@
 Benchmark of the ROS pipeline's latency against the bare image hop (issues 5 and 17).
 
 Side by side in one run, idle and under a CPU load of two busy processes (rows ``+2 busy``),
-each case in fresh processes, each process in a session of its own as the launcher starts
-the nodes (with the kernel's autogroup scheduling, CPU time is shared between sessions
-first), 640×480 rgb8 at 30 Hz, reliable, discovery on localhost:
+each case in fresh processes, each process (the busy ones too, as unrelated programs) in a
+session of its own as the launcher starts the nodes (with the kernel's autogroup
+scheduling, CPU time is shared between sessions first), 640×480 rgb8 at 30 Hz, reliable,
+discovery on localhost:
 
 - the bare two-process image hop (``benchmarks.hop``) with Fast DDS's defaults and with the
   shipped profile (``config/fastdds.xml``), and the bare one-process hop with the profile
@@ -45,6 +46,7 @@ import time
 from benchmarks.bench_transport import _last_json, _rows, busy_load, hop
 from benchmarks.hop import hop_env
 import numpy as np
+from sphere_servo.bringup.processes import die_with
 
 NODES = ('detector', 'features', 'servo')
 DRAIN = 1.0  # s: frames sent this close to the end may still be on their way
@@ -66,7 +68,7 @@ def _start(mode: str, rate: float, env: dict, nice: int = 0) -> dict[str, subpro
     def popen(cmd, out=subprocess.DEVNULL):
         return subprocess.Popen([sys.executable, *cmd], env=env, stdout=out,
                                 stderr=subprocess.DEVNULL, text=True, start_new_session=True,
-                                preexec_fn=(lambda: os.nice(nice)) if nice else None)
+                                preexec_fn=die_with(os.getpid(), nice))
     feeder = ['-m', 'benchmarks.feeder', 'feeder' if mode == 'processes' else 'single',
               '--rate', str(rate)]
     procs = {'feeder': popen(feeder, subprocess.PIPE)}
@@ -203,7 +205,7 @@ def relay_floor(mode: str, rate: float = 30.0, seconds: float = 10.0,
         raise ValueError(f'mode must be processes or single, not {mode!r}')
     procs = {n: subprocess.Popen(c, env=env, text=True, stderr=subprocess.DEVNULL,
                                  stdout=subprocess.PIPE if n == 'servo' else subprocess.DEVNULL,
-                                 start_new_session=True)
+                                 start_new_session=True, preexec_fn=die_with(os.getpid()))
              for n, c in cmds.items()}
     try:
         if not select.select([procs['servo'].stdout], [], [], 60.0)[0]:
@@ -246,7 +248,7 @@ def run(quick: bool = False) -> list[dict]:
     rows = []
     for load in (False, True):
         tag = ' +2 busy' if load else ''
-        with busy_load(2) if load else nullcontext():
+        with busy_load(2, own_sessions=True) if load else nullcontext():
             default = hop(2, False, seconds=seconds)
             profiled = hop(2, True, seconds=seconds)
             inproc = hop(1, True, seconds=seconds)
@@ -285,7 +287,7 @@ def run(quick: bool = False) -> list[dict]:
                       profiled, 'profiled 2-process hop', 'information (one hop more)')[:-1]
     for load in (False, True):
         tag = ', +2 busy' if load else ''
-        with busy_load(2) if load else nullcontext():
+        with busy_load(2, own_sessions=True) if load else nullcontext():
             r60 = {m: pipeline(m, 60.0, seconds) for m in ('processes', 'single')}
         rows += _unanswered_rows(f'3 processes{tag}', r60['processes']) + \
             _unanswered_rows(f'single process{tag}', r60['single'])

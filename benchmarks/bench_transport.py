@@ -74,15 +74,17 @@ def hop(processes: int, profile: bool, size=VGA, seconds: float = 10.0,
     cmd = [sys.executable, '-m', 'benchmarks.hop']
     if processes == 1:
         out = subprocess.run([*cmd, 'both', *args], env=env, capture_output=True, text=True,
-                             timeout=seconds + 120, start_new_session=True)
+                             timeout=seconds + 120, start_new_session=True,
+                             preexec_fn=die_with(os.getpid()))
         res = _last_json(out.stdout, 'hop both')
         sent = res
     elif processes == 2:
         sub = subprocess.Popen([*cmd, 'sub', *args], env=env, stdout=subprocess.PIPE, text=True,
-                               start_new_session=True)
+                               start_new_session=True, preexec_fn=die_with(os.getpid()))
         try:
             pub = subprocess.run([*cmd, 'pub', *args], env=env, capture_output=True, text=True,
-                                 timeout=seconds + 120, start_new_session=True)
+                                 timeout=seconds + 120, start_new_session=True,
+                                 preexec_fn=die_with(os.getpid()))
             sent = _last_json(pub.stdout, 'hop pub')
         finally:
             sub.send_signal(signal.SIGINT)
