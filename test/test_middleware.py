@@ -3,7 +3,8 @@ The shipped Fast DDS profile (config/fastdds.xml) and the environment that selec
 
 - The file: well-formed, a default participant profile whose transports are all defined,
   the built-in transports off, a shared-memory segment that holds several 1280×720 rgb8
-  images, a port queue that does not run out before the segment does, UDPv4 present.
+  images, a port queue that does not run out before the segment does, UDPv4 present, and
+  participants announced every second, well within their lease (discovery across hosts).
 - ``sphere_servo.pipeline.middleware``: the variables, what a user set wins, refusals.
 - Over ROS: an image publisher started with that environment really sends through a segment
   of the profile's size (without it, through Fast DDS's 512 KiB one), which is what shows
@@ -71,6 +72,23 @@ def test_shm_segment_holds_several_hd_images_and_the_port_queue_keeps_up():
     queue = int(shm.findtext('p:port_queue_capacity', namespaces=NS))
     # every 64 KB fragment in the segment can also be queued at a receiving port
     assert queue * UDP_FRAGMENT >= segment
+
+
+def _seconds(duration) -> float:
+    return float(duration.findtext('p:sec', '0', NS)) + \
+        float(duration.findtext('p:nanosec', '0', NS)) * 1e-9
+
+
+def test_participants_announce_every_second_well_within_their_lease():
+    root = ET.parse(SOURCE_PROFILE).getroot()
+    discovery = root.find("p:participant[@is_default_profile='true']/p:rtps/p:builtin/"
+                          'p:discovery_config', NS)
+    assert discovery is not None
+    announcement = _seconds(discovery.find('p:leaseAnnouncement', NS))
+    lease = discovery.find('p:leaseDuration', NS)
+    lease = 20.0 if lease is None else _seconds(lease)  # Fast DDS's default
+    assert 0 < announcement <= 1.0
+    assert lease >= 10 * announcement  # a few lost announcements drop no participant
 
 
 def test_profile_env_names_the_profile_under_both_variables(tmp_path):

@@ -10,6 +10,9 @@ until the servo reports ``converged`` on a frame after the test said the link is
 line ``restored`` on stdin), or ``--timeout``. It prints JSON lines, flushed:
 
 - ``{"event": "enabled", "wall": t}`` once the servo is enabled;
+- ``{"event": "moving", "wall": t, "iteration": n}`` once a joint state after that shows the
+  arm moving (the servo's twists reach it: the loop is closed across the link), with the
+  servo's iteration count then;
 - ``{"iteration": n, "wall": t}`` each time the servo's iteration count grows;
 - at the end, ``{"result": ...}``: ``converged`` (bool), its ``wall`` time,
   ``iterations``, ``error_mm`` and ``error_deg`` against the taught pose, and what arrived
@@ -20,6 +23,7 @@ line ``restored`` on stdin), or ``--timeout``. It prints JSON lines, flushed:
 from __future__ import annotations
 
 import argparse
+from itertools import takewhile
 import json
 from pathlib import Path
 import select
@@ -70,8 +74,9 @@ def main(argv=None) -> int:
     result = {'converged': False}
     try:
         sup.teach(lambda m: _say(log=m), lambda: True)
-        _say(event='enabled', wall=time.time())
-        restored_at, last_it = None, -1
+        enabled = time.time()
+        _say(event='enabled', wall=enabled)
+        restored_at, last_it, moving = None, -1, False
         end = time.monotonic() + args.timeout
         while time.monotonic() < end:
             sup.spin(0.05)
@@ -79,6 +84,10 @@ def main(argv=None) -> int:
             if it > last_it:
                 last_it = it
                 _say(iteration=it, wall=time.time())
+            since = takewhile(lambda j: j[0] > enabled, reversed(joints))
+            if not moving and any(v > 0 for _, _, v in since):
+                moving = True
+                _say(event='moving', wall=time.time(), iteration=last_it)
             if restored_at is None and select.select([sys.stdin], [], [], 0)[0]:
                 if sys.stdin.readline().strip() == 'restored':
                     restored_at = sup.state_stamp  # the newest frame the servo had answered
