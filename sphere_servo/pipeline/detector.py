@@ -63,12 +63,10 @@ def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[fl
         key = (width, height, tuple(float(x) for x in k),
                None if d is None else tuple(float(x) for x in d),
                tuple(float(x) for x in intrinsics_error), str(distortion_model))
+        hash(key)
     except (TypeError, ValueError):  # not numbers: the builder says what is wrong
         return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
-    try:
-        return _camera_from_key(*key)
-    except TypeError:  # an unhashable width or height
-        return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
+    return _camera_from_key(*key)
 
 
 @lru_cache(maxsize=16)
