@@ -43,10 +43,9 @@ import subprocess
 import sys
 import time
 
-from benchmarks.bench_transport import _last_json, _rows, busy_load, hop
+from benchmarks.bench_transport import _last_json, _rows, busy_load, hop, own_session
 from benchmarks.hop import hop_env
 import numpy as np
-from sphere_servo.bringup.processes import die_with
 
 NODES = ('detector', 'features', 'servo')
 DRAIN = 1.0  # s: frames sent this close to the end may still be on their way
@@ -67,8 +66,7 @@ def _start(mode: str, rate: float, env: dict, nice: int = 0) -> dict[str, subpro
     """Start the pipeline's processes: ``processes`` (3 nodes + feeder) or ``single``."""
     def popen(cmd, out=subprocess.DEVNULL):
         return subprocess.Popen([sys.executable, *cmd], env=env, stdout=out,
-                                stderr=subprocess.DEVNULL, text=True, start_new_session=True,
-                                preexec_fn=die_with(os.getpid(), nice))
+                                stderr=subprocess.DEVNULL, text=True, **own_session(nice))
     feeder = ['-m', 'benchmarks.feeder', 'feeder' if mode == 'processes' else 'single',
               '--rate', str(rate)]
     procs = {'feeder': popen(feeder, subprocess.PIPE)}
@@ -205,7 +203,7 @@ def relay_floor(mode: str, rate: float = 30.0, seconds: float = 10.0,
         raise ValueError(f'mode must be processes or single, not {mode!r}')
     procs = {n: subprocess.Popen(c, env=env, text=True, stderr=subprocess.DEVNULL,
                                  stdout=subprocess.PIPE if n == 'servo' else subprocess.DEVNULL,
-                                 start_new_session=True, preexec_fn=die_with(os.getpid()))
+                                 **own_session())
              for n, c in cmds.items()}
     try:
         if not select.select([procs['servo'].stdout], [], [], 60.0)[0]:

@@ -28,6 +28,17 @@ RATE = 30.0
 VGA, HD = (640, 480), (1280, 720)
 
 
+def own_session(nice: int = 0) -> dict:
+    """
+    Return the ``subprocess`` keywords that start a process as the launcher starts a node.
+
+    A session of its own (with the kernel's autogroup scheduling, CPU time is shared between
+    sessions first), its niceness (this process's, plus ``nice``) given to that session, and
+    ended if this process dies: :func:`~sphere_servo.bringup.processes.die_with`.
+    """
+    return {'start_new_session': True, 'preexec_fn': die_with(os.getpid(), nice)}
+
+
 @contextmanager
 def busy_load(n: int = 2, own_sessions: bool = False):
     """
@@ -40,8 +51,7 @@ def busy_load(n: int = 2, own_sessions: bool = False):
     load mostly the caller (and the launcher's nodes, each in a session of its own, little).
     """
     procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass'],
-                              start_new_session=own_sessions,
-                              preexec_fn=die_with(os.getpid()) if own_sessions else None)
+                              **(own_session() if own_sessions else {}))
              for _ in range(n)]
     try:
         yield procs
@@ -74,17 +84,15 @@ def hop(processes: int, profile: bool, size=VGA, seconds: float = 10.0,
     cmd = [sys.executable, '-m', 'benchmarks.hop']
     if processes == 1:
         out = subprocess.run([*cmd, 'both', *args], env=env, capture_output=True, text=True,
-                             timeout=seconds + 120, start_new_session=True,
-                             preexec_fn=die_with(os.getpid()))
+                             timeout=seconds + 120, **own_session())
         res = _last_json(out.stdout, 'hop both')
         sent = res
     elif processes == 2:
         sub = subprocess.Popen([*cmd, 'sub', *args], env=env, stdout=subprocess.PIPE, text=True,
-                               start_new_session=True, preexec_fn=die_with(os.getpid()))
+                               **own_session())
         try:
             pub = subprocess.run([*cmd, 'pub', *args], env=env, capture_output=True, text=True,
-                                 timeout=seconds + 120, start_new_session=True,
-                                 preexec_fn=die_with(os.getpid()))
+                                 timeout=seconds + 120, **own_session())
             sent = _last_json(pub.stdout, 'hop pub')
         finally:
             sub.send_signal(signal.SIGINT)
