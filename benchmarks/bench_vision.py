@@ -8,7 +8,9 @@ Vision benchmark: detector and renderer speed (prints; never asserted by tests).
   candidate search's hard case);
 - the detector *cold*: each frame after a 33 ms pause (a 30 Hz camera: between frames the
   caches, the branch predictors and OpenCV's thread pool go cold), beside the same frames
-  back to back (warm) as the baseline, on the 640×480 and the checkerboard frames;
+  back to back (warm) as the baseline, on the 640×480 and the checkerboard frames; and
+  cold again with the frame's pixels read, or another frame detected, right before it
+  (information: which of data and code path the pause leaves cold);
 - renderer frames/s for a target filling a quarter of the image (target ≥ 150).
 
 ``python -m benchmarks.bench_vision [--quick]`` prints a table.
@@ -72,12 +74,18 @@ def _median_ms_pair(fa, fb, frames, repeat: int) -> tuple[float, float]:
     return 1e3 * float(np.median(ta)), 1e3 * float(np.median(tb))
 
 
-def _cold_ms(f, frames, repeat: int, gap: float = 0.033) -> float:
-    """Median ms of ``f`` per frame, each call after a pause of ``gap`` s (sleeping)."""
+def _cold_ms(f, frames, repeat: int, gap: float = 0.033, before=None) -> float:
+    """
+    Median ms of ``f`` per frame, each call after a pause of ``gap`` s (sleeping).
+
+    ``before(frame)``, if given, runs after the pause and before the timed call.
+    """
     ts = []
     for _ in range(repeat):
         for fr in frames:
             time.sleep(gap)
+            if before is not None:
+                before(fr)
             t0 = time.perf_counter()
             f(fr)
             ts.append(time.perf_counter() - t0)
@@ -117,6 +125,15 @@ def run(quick: bool = False) -> list[dict]:
             cold = _cold_ms(lambda f: det.detect(f, 'rgb8', cam), frames, repeat)
             rows.append(_row(name.replace('detector', 'detector cold (33 ms apart)', 1), cold,
                              'ms', 'ratio <= 1.5', warm, 'the same, back to back'))
+            # what goes cold: the frame's pixels (read once just before) or the code path
+            # (another frame detected just before)
+            for what, before in (('its image read just before', lambda f: int(f.sum())),
+                                 ('another frame detected just before',
+                                  lambda f, o=frames[0]: det.detect(o, 'rgb8', cam))):
+                ms = _cold_ms(lambda f: det.detect(f, 'rgb8', cam), frames, repeat,
+                              before=before)
+                rows.append(_row(name.replace('detector', f'detector cold, {what},', 1), ms,
+                                 'ms', 'information', cold, 'cold'))
     # a target filling a quarter of the image: disc area W·H/4
     R_px = np.sqrt(cam.width * cam.height / (4 * np.pi))
     for name, tgt in (('special', special_sphere()), ('cc', cc_target())):
