@@ -128,6 +128,9 @@ def _resolve(path: Path) -> tuple[Path, list[Path], BagMeta | None]:
     if (path / 'metadata.yaml').is_file():
         meta = read_metadata(path)
         files = [path / Path(p).name for p in meta.relative_file_paths]
+        twice = sorted({f.name for f in files if files.count(f) > 1})
+        if twice:  # its messages would all be read twice
+            raise BagError(f'{str(path)!r}: metadata.yaml lists {", ".join(twice)} twice')
         missing = [f.name for f in files if not f.is_file()]
         if missing:
             raise BagError(f'{str(path)!r}: metadata.yaml lists missing files: '
