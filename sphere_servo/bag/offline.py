@@ -53,11 +53,16 @@ class Settings:
 
     @classmethod
     def from_params(cls, params: dict | None = None) -> Settings:
-        """Return the nodes' defaults, overridden by merged params files' sections."""
+        """
+        Return the nodes' defaults, overridden by merged params files' sections.
+
+        Checked as a node checks its params file (``strict``): a name the node does not
+        have is refused, not ignored (the node would not start with it).
+        """
         params = params or {}
-        return cls(DetectorParams.from_mapping(section(params, 'detector')),
-                   FeaturesParams.from_mapping(section(params, 'features')),
-                   ServoParams.from_mapping(section(params, 'servo')))
+        return cls(DetectorParams.from_mapping(section(params, 'detector'), strict=True),
+                   FeaturesParams.from_mapping(section(params, 'features'), strict=True),
+                   ServoParams.from_mapping(section(params, 'servo'), strict=True))
 
 
 def load_settings(spec: str | None) -> Settings:
