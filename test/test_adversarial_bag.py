@@ -2,6 +2,7 @@
 Adversarial bags, written by ``rosbags`` (not by our writer): lies and unusable content.
 
 - ``metadata.yaml`` that lists one storage file twice (every message would be read twice);
+- an MCAP bag compressed per message, without ``metadata.yaml``: it must be read;
 - ``refeatures`` on a bag whose images cannot be measured (a camera_info refused, missing or
   of another size): it must say so and exit non-zero, not print the table of a good run.
 
@@ -133,3 +134,25 @@ def test_metadata_listing_a_storage_file_twice_is_refused(tmp_path, storage):
         (path / 'metadata.yaml').write_text(yaml.safe_dump(meta))
         with pytest.raises(BagError, match=f'{name}.*twice'):
             bagio.open_bag(path)
+
+
+def test_message_compressed_mcap_without_metadata_is_read(tmp_path):
+    """
+    rosbag2 compresses per message in MCAP too (``-s mcap --compression-mode message``).
+
+    Without ``metadata.yaml`` (a recorder killed) the zstd frames are recognised as for
+    sqlite3, not handed to the CDR decoder (which refused every message).
+    """
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode
+    path = tmp_path / 'z'
+    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    w.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    with w:
+        conn = w.add_connection('/chatter', 'std_msgs/msg/String', typestore=TS)
+        for t in (1, 2, 3):
+            w.write(conn, t, TS.serialize_cdr(T['std_msgs/msg/String'](data=f'z{t}'),
+                                              'std_msgs/msg/String'))
+    (path / 'metadata.yaml').unlink()
+    with bagio.bag(path) as r:
+        got = [(ts, r.deserialize(raw, c.msgtype).data) for c, ts, raw in r.messages()]
+    assert got == [(1, 'z1'), (2, 'z2'), (3, 'z3')]

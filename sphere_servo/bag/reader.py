@@ -78,7 +78,7 @@ def unclosed(path: Path) -> str | None:
 
 def message_compression(st) -> str:
     """
-    Return ``message`` if an open sqlite3 storage holds zstd-compressed messages, else ''.
+    Return ``message`` if an open storage holds zstd-compressed messages, else ''.
 
     For a bag without ``metadata.yaml``: its first message tells (CDR starts with an
     encapsulation header, never with the zstd frame magic).
@@ -200,7 +200,7 @@ class BagReader:
                 except Exception as err:  # rosbags raises several types: all "unreadable"
                     raise BagError(f'{f.name}: {one_line(err)}') from None
                 self.storages.append(st)
-            if self.meta is None and self.storage == 'sqlite3':
+            if self.meta is None:  # rosbag2 compresses per message in either storage
                 modes = {message_compression(st) for st in self.storages} - {''}
                 self.compression_mode = modes.pop() if modes else ''
             self._merge()
