@@ -156,3 +156,26 @@ def test_message_compressed_mcap_without_metadata_is_read(tmp_path):
     with bagio.bag(path) as r:
         got = [(ts, r.deserialize(raw, c.msgtype).data) for c, ts, raw in r.messages()]
     assert got == [(1, 'z1'), (2, 'z2'), (3, 'z3')]
+
+
+def test_refeatures_says_what_the_reader_left_out(tmp_path):
+    """
+    Pass on the reader's warning: a split file's images of another type are not read.
+
+    The second file of the split bag carries the image topic as a String; the reader warns
+    that those messages are not read, and refeatures must say it. Before, it ran on the
+    first file's images alone without a word.
+    """
+    parts = [images_bag(tmp_path / 'part0')]
+    with Writer(tmp_path / 'part1', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection('/camera/image_raw', 'std_msgs/msg/String', typestore=TS)
+        w.write(conn, 10 * SEC, TS.serialize_cdr(T['std_msgs/msg/String'](data='x'),
+                                                 'std_msgs/msg/String'))
+    parts.append(tmp_path / 'part1')
+    path = tmp_path / 'split'
+    path.mkdir()
+    for i, part in enumerate(parts):  # as rosbag2 names a split bag's files, no metadata
+        next(part.glob('*.mcap')).rename(path / f'split_{i}.mcap')
+    code, out, err = _run([str(path), *DESIRED])
+    assert code == 0 and 'refeatures: 3 images' in out, (out, err)
+    assert 'warning:' in err and 'not read' in err and 'std_msgs/msg/String' in err, err

@@ -32,7 +32,8 @@ class Result:
     The regenerated streams: topic → [(bag ns, rclpy message)].
 
     ``frames``: all images; ``desired``: the desireds in the order they took effect;
-    ``warnings``: what a user must hear about the run (images the detector rejected).
+    ``warnings``: what a user must hear about the run (the reader's warnings on the bag,
+    images the detector rejected).
     """
 
     frames: list
@@ -71,6 +72,7 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
         cameras = Cameras(pipe, read_topic(reader, topic_name(info_topic)))
         frames = [pipe.frame(i, ts, img, cameras(ts, header_ns(img.header)))
                   for i, ts, img in iter_image_msgs(reader, topic_name(image_topic))]
+        warnings = list(reader.warnings)  # e.g. messages it does not read: say so
     if not frames:
         raise BagError(f'no images on {topic_name(image_topic)}')
     rejected = rejections(frames, cameras, topic_name(image_topic))
@@ -81,7 +83,7 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
     want = list(dict.fromkeys([*names, law_set] if servo else names))
     ds = find_desired(pipe, frames, desired, rec_sets, rec_desired, cameras)
     res = Result(frames, ds, recorded=recorded, sets=names, pipeline=pipe,
-                 warnings=[rejected] if rejected else [])
+                 warnings=warnings + ([rejected] if rejected else []))
     res.streams[MEAS_TOPIC] = [(f.bag_ns, measurement_msg(f.meas, f.header)) for f in frames]
     streams = {features_topic(n): [] for n in want}
     streams.update({desired_topic(n): [] for n in want})
