@@ -107,3 +107,45 @@ def test_a_kept_desired_with_nan_is_refused_at_start(tmp_path):
     assert 'NaN' in path.read_text()
     with pytest.raises(ParameterError, match='ellipse_v'):
         core(desired_source='teach', desired_file=str(path))
+
+
+#: the first stamp builtin_interfaces/Time cannot carry (sec is an int32)
+TIME_END_NS = 2**31 * 10**9
+
+
+def _kept(tmp_path, stamp_ns: int):
+    names, values = fields()
+    path = tmp_path / 'desired.json'
+    path.write_text(json.dumps({'format': DESIRED_FORMAT, 'stamp': '', 'stamp_ns': stamp_ns,
+                                'frame_id': 'camera_optical_frame',
+                                'target_kind': 'special', 'names': names,
+                                'values': values}))
+    return str(path)
+
+
+def test_a_kept_desired_stamped_at_the_last_time_a_header_carries_is_read(tmp_path):
+    c = core(desired_source='teach', desired_file=_kept(tmp_path, TIME_END_NS - 1))
+    assert c.desired_stamp_ns == TIME_END_NS - 1 and c.has_desired
+
+
+@pytest.mark.parametrize('stamp_ns', [TIME_END_NS, (2**40 + 5) * 10**9, 2**63])
+def test_a_kept_desired_stamped_beyond_a_header_is_refused(tmp_path, stamp_ns):
+    """
+    Its stamp is published in the desired's header, whose sec is an int32.
+
+    rclpy does not check the range: (2^40 + 5) s serializes as 5 s, a stamp of another
+    image, with no error anywhere.
+    """
+    with pytest.raises(ParameterError, match='stamp_ns'):
+        core(desired_source='teach', desired_file=_kept(tmp_path, stamp_ns))
+
+
+@pytest.mark.parametrize('ns', [TIME_END_NS, (2**40 + 5) * 10**9])
+def test_a_stamp_beyond_a_header_is_not_published_wrapped(ns):
+    """``stamp_from_ns`` refuses what ``builtin_interfaces/Time`` would wrap silently."""
+    pytest.importorskip('rclpy')
+    from sphere_servo.ros.conversions import stamp_from_ns
+    t = stamp_from_ns(TIME_END_NS - 1)
+    assert (t.sec, t.nanosec) == (2**31 - 1, 999_999_999)
+    with pytest.raises(ValueError, match='stamp'):
+        stamp_from_ns(ns)
