@@ -16,7 +16,7 @@ from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.measurement import Observation
 from sphere_servo.pipeline.common import Refusal, stamp_ns
 from sphere_servo.pipeline.config import load_node_params, section
-from sphere_servo.pipeline.detector import camera_from_info, DetectorCore
+from sphere_servo.pipeline.detector import camera_from_info, DetectorCore, DetectStatus
 from sphere_servo.pipeline.features import FeaturesCore, FeaturesOutput
 from sphere_servo.pipeline.params import DetectorParams, FeaturesParams, ServoParams
 from sphere_servo.pipeline.servo import ServoCommand, ServoCore, Unanswered
@@ -53,11 +53,16 @@ class Settings:
 
     @classmethod
     def from_params(cls, params: dict | None = None) -> Settings:
-        """Return the nodes' defaults, overridden by merged params files' sections."""
+        """
+        Return the nodes' defaults, overridden by merged params files' sections.
+
+        Checked as a node checks its params file (``strict``): a name the node does not
+        have is refused, not ignored (the node would not start with it).
+        """
         params = params or {}
-        return cls(DetectorParams.from_mapping(section(params, 'detector')),
-                   FeaturesParams.from_mapping(section(params, 'features')),
-                   ServoParams.from_mapping(section(params, 'servo')))
+        return cls(DetectorParams.from_mapping(section(params, 'detector'), strict=True),
+                   FeaturesParams.from_mapping(section(params, 'features'), strict=True),
+                   ServoParams.from_mapping(section(params, 'servo'), strict=True))
 
 
 def load_settings(spec: str | None) -> Settings:
@@ -75,13 +80,18 @@ def ros_header(h):
 
 @dataclass
 class Frame:
-    """One recorded image: index, bag time, header stamp (ns), header, its measurement."""
+    """
+    One recorded image: index, bag time, header stamp (ns), header, its measurement.
+
+    ``rejected``: why the detector rejected the image ('' if it did not).
+    """
 
     index: int
     bag_ns: int
     stamp: int
     header: object
     meas: Measurement
+    rejected: str = ''
 
 
 class Pipeline:
@@ -98,19 +108,21 @@ class Pipeline:
 
     def camera(self, info) -> CentralCamera | None:
         """Return the detector's camera of a (rosbags) CameraInfo, None if unusable."""
-        cam = camera_from_info(info.width, info.height, info.k, info.d,
-                               self.settings.detector.intrinsics_error, info.distortion_model)
+        cam = self.camera_or_refusal(info)
         return None if isinstance(cam, Refusal) else cam
 
-    def measure(self, img, camera: CentralCamera | None) -> Measurement:
-        """Return ``detector/measurement`` of one (rosbags) Image (empty: not detected)."""
-        return self.detector.detect(img.height, img.width, img.step, img.encoding, img.data,
-                                    camera).measurement
+    def camera_or_refusal(self, info) -> CentralCamera | Refusal:
+        """Return the detector's camera of a (rosbags) CameraInfo, or why it has none."""
+        return camera_from_info(info.width, info.height, info.k, info.d,
+                                self.settings.detector.intrinsics_error, info.distortion_model)
 
     def frame(self, index: int, bag_ns: int, img, camera) -> Frame:
         """Return the :class:`Frame` of one recorded image."""
+        out = self.detector.detect(img.height, img.width, img.step, img.encoding, img.data,
+                                   camera)
         return Frame(index, bag_ns, header_ns(img.header), ros_header(img.header),
-                     self.measure(img, camera))
+                     out.measurement,
+                     out.reason if out.status is DetectStatus.REJECTED else '')
 
     def observation(self, meas: Measurement) -> Observation:
         """Return the features node's Observation of a measurement (MeasurementError if lost)."""
@@ -180,13 +192,17 @@ class Cameras:
     The detector's intrinsics for an image.
 
     The bag's camera_info with the image's stamp, else the latest one before it, else the
-    first one (intrinsics do not change in a run).
+    first one (intrinsics do not change in a run). A refused camera_info gives no camera;
+    ``refused`` keeps why, in bag order.
     """
 
     def __init__(self, pipeline: Pipeline, infos: list[tuple[int, object]]):
         self.infos = infos
-        self.by_stamp = {header_ns(m.header): pipeline.camera(m) for _, m in infos}
-        self.by_time = [(ts, pipeline.camera(m)) for ts, m in infos]
+        built = [(ts, header_ns(m.header), pipeline.camera_or_refusal(m)) for ts, m in infos]
+        self.refused = [c.reason for *_, c in built if isinstance(c, Refusal)]
+        built = [(ts, st, None if isinstance(c, Refusal) else c) for ts, st, c in built]
+        self.by_stamp = {st: c for _, st, c in built}
+        self.by_time = [(ts, c) for ts, _, c in built]
 
     def __call__(self, bag_ns: int, stamp: int) -> CentralCamera | None:
         """Return the camera of the image stamped ``stamp`` recorded at ``bag_ns``."""

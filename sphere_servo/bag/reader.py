@@ -78,7 +78,7 @@ def unclosed(path: Path) -> str | None:
 
 def message_compression(st) -> str:
     """
-    Return ``message`` if an open sqlite3 storage holds zstd-compressed messages, else ''.
+    Return ``message`` if an open storage holds zstd-compressed messages, else ''.
 
     For a bag without ``metadata.yaml``: its first message tells (CDR starts with an
     encapsulation header, never with the zstd frame magic).
@@ -128,6 +128,9 @@ def _resolve(path: Path) -> tuple[Path, list[Path], BagMeta | None]:
     if (path / 'metadata.yaml').is_file():
         meta = read_metadata(path)
         files = [path / Path(p).name for p in meta.relative_file_paths]
+        twice = sorted({f.name for f in files if files.count(f) > 1})
+        if twice:  # its messages would all be read twice
+            raise BagError(f'{str(path)!r}: metadata.yaml lists {", ".join(twice)} twice')
         missing = [f.name for f in files if not f.is_file()]
         if missing:
             raise BagError(f'{str(path)!r}: metadata.yaml lists missing files: '
@@ -197,7 +200,7 @@ class BagReader:
                 except Exception as err:  # rosbags raises several types: all "unreadable"
                     raise BagError(f'{f.name}: {one_line(err)}') from None
                 self.storages.append(st)
-            if self.meta is None and self.storage == 'sqlite3':
+            if self.meta is None:  # rosbag2 compresses per message in either storage
                 modes = {message_compression(st) for st in self.storages} - {''}
                 self.compression_mode = modes.pop() if modes else ''
             self._merge()

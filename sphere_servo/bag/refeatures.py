@@ -126,6 +126,8 @@ def _main(opts) -> int:
     res = regenerate(opts.bag, settings, opts.sets, opts.desired, opts.servo,
                      opts.image_topic, opts.info_topic)
     print(f'refeatures: {len(res.frames)} images')
+    for w in res.warnings:
+        print(f'refeatures: warning: {w}', file=sys.stderr)
     for d in res.desired:
         print(f'  desired ({d.how}): {d.note}' if d.note else f'  desired ({d.how})')
         if d.frame is not None:

@@ -31,11 +31,14 @@ class Result:
     """
     The regenerated streams: topic → [(bag ns, rclpy message)].
 
-    ``frames``: all images; ``desired``: the desireds in the order they took effect.
+    ``frames``: all images; ``desired``: the desireds in the order they took effect;
+    ``warnings``: what a user must hear about the run (the reader's warnings on the bag,
+    images the detector rejected).
     """
 
     frames: list
     desired: list
+    warnings: list = field(default_factory=list)
     streams: dict = field(default_factory=dict)
     recorded: dict = field(default_factory=dict)   # topic → [(bag ns, rosbags message)]
     sets: list = field(default_factory=list)
@@ -69,15 +72,18 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
         cameras = Cameras(pipe, read_topic(reader, topic_name(info_topic)))
         frames = [pipe.frame(i, ts, img, cameras(ts, header_ns(img.header)))
                   for i, ts, img in iter_image_msgs(reader, topic_name(image_topic))]
+        warnings = list(reader.warnings)  # e.g. messages it does not read: say so
     if not frames:
         raise BagError(f'no images on {topic_name(image_topic)}')
+    rejected = rejections(frames, cameras, topic_name(image_topic))
     recorded[TWIST_TOPIC] = [(t, m) for t, m in recorded[TWIST_TOPIC] if header_ns(m.header)]
     rec_sets = {n: recorded[features_topic(n)] for n in names}
     rec_desired = {n: recorded[desired_topic(n)] for n in FEATURE_SETS}
     law_set = settings.servo.feature_set
     want = list(dict.fromkeys([*names, law_set] if servo else names))
     ds = find_desired(pipe, frames, desired, rec_sets, rec_desired, cameras)
-    res = Result(frames, ds, recorded=recorded, sets=names, pipeline=pipe)
+    res = Result(frames, ds, recorded=recorded, sets=names, pipeline=pipe,
+                 warnings=warnings + ([rejected] if rejected else []))
     res.streams[MEAS_TOPIC] = [(f.bag_ns, measurement_msg(f.meas, f.header)) for f in frames]
     streams = {features_topic(n): [] for n in want}
     streams.update({desired_topic(n): [] for n in want})
@@ -104,6 +110,24 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
     if servo:
         res.streams[TWIST_TOPIC] = twists
     return res
+
+
+def rejections(frames: list, cameras: Cameras, topic: str) -> str:
+    """
+    Say how many images the detector rejected, and why the first was ('' if none was).
+
+    Raises BagError when it rejected every one: nothing could be regenerated (a camera_info
+    refused, missing or of another size), and a table of empty features would hide it.
+    """
+    rejected = [f for f in frames if f.rejected]
+    if not rejected:
+        return ''
+    why = rejected[0].rejected + (f' (camera_info refused: {cameras.refused[0]})'
+                                  if cameras.refused else '')
+    text = f'{len(rejected)} of {len(frames)} images on {topic} rejected by the detector: {why}'
+    if len(rejected) == len(frames):
+        raise BagError(text)
+    return text
 
 
 def state_stamps(states: list) -> tuple[set[int], set[int]]:

@@ -11,6 +11,9 @@ from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 
 NS = 1_000_000_000
+#: the first stamp a header cannot carry: ``builtin_interfaces/Time.sec`` is an int32, and
+#: rclpy serializes a larger one wrapped (2^40 + 5 s goes out as 5 s), without an error
+STAMP_END_NS = 2**31 * NS
 
 
 class Level(IntEnum):

@@ -47,7 +47,8 @@ from sphere_servo.core.measurement import (Observation, observe, PINHOLE_FIELD,
                                            validated_observation)
 from sphere_servo.core.targets import make_target, Target
 from sphere_servo.core.validation import Violation
-from sphere_servo.pipeline.common import Level, NodeStatus, Refusal, Reply, stamp_text
+from sphere_servo.pipeline.common import (Level, NodeStatus, Refusal, Reply, STAMP_END_NS,
+                                          stamp_text)
 from sphere_servo.pipeline.detector import camera_from_info, detector_camera
 from sphere_servo.pipeline.params import FeaturesParams, ParameterError
 from sphere_servo.pipeline.vectors import Measurement, SetFeatures
@@ -157,8 +158,10 @@ class KeptDesired:
                         for v in values)):
                 raise ValueError('names must be strings and values numbers')
             stamp = data['stamp_ns']
-            if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0:
-                raise ValueError(f'stamp_ns must be a whole number >= 0, got {stamp!r}')
+            if isinstance(stamp, bool) or not isinstance(stamp, int) \
+                    or not 0 <= stamp < STAMP_END_NS:
+                raise ValueError(f'stamp_ns must be a whole number in [0, {STAMP_END_NS}) '
+                                 f'(a header stamp), got {stamp!r}')
             return cls(Measurement.of(names, [float(v) for v in values]), stamp,
                        str(data['frame_id']), str(data['target_kind']))
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:

@@ -97,7 +97,7 @@ def _typed(name: str, p: Param, value):
         ok = isinstance(value, int) and not isinstance(value, bool)
     elif isinstance(d, float):
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        value = float(value) if ok else value
+        value = _float(name, value) if ok else value
     elif isinstance(d, str):
         ok = isinstance(value, str)
     elif value is None:  # what ROS gives for `[]`, which has no element type
@@ -111,10 +111,19 @@ def _typed(name: str, p: Param, value):
         elif ok:
             ok = all(isinstance(v, (int, float, np.number)) and not isinstance(v, bool)
                      for v in value)
-            value = tuple(float(v) for v in value) if ok else value
+            value = tuple(_float(name, v) for v in value) if ok else value
     if not ok:
         raise ParameterError(f'{name} must be of the type of {d!r}, got {value!r}')
     return value
+
+
+def _float(name: str, value) -> float:
+    """Return ``float(value)``; ParameterError for an integer beyond a float (YAML has them)."""
+    try:
+        return float(value)
+    except OverflowError:
+        raise ParameterError(f'{name} must be a finite number, got an integer of '
+                             f'{len(str(abs(int(value))))} digits') from None
 
 
 def _ros_typed(name: str, p: Param, value) -> None:
@@ -127,13 +136,13 @@ def _ros_typed(name: str, p: Param, value) -> None:
     d = p.default
     if isinstance(d, float) and isinstance(value, int) and not isinstance(value, bool):
         raise ParameterError(f'{name} must be a floating-point number: ROS reads {value} as '
-                             f'an integer, write {float(value)}')
+                             f'an integer, write {_float(name, value)}')
     if isinstance(d, (list, tuple)) and d and isinstance(d[0], float) \
             and isinstance(value, (list, tuple)) \
             and any(isinstance(v, int) and not isinstance(v, bool) for v in value):
         raise ParameterError(f'{name} must be floating-point numbers: ROS reads the '
                              f'integers in {list(value)} as integers, write '
-                             f'{[float(v) for v in value]}')
+                             f'{[_float(name, v) for v in value]}')
 
 
 def param(default, description: str, *, name: str | None = None, **constraints):

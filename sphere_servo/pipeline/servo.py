@@ -16,7 +16,10 @@ clock (sim time with ``use_sim_time``), ``wall_now`` a monotonic wall clock in s
   image answered (stamps going backwards: another source, a replay), are refused: a zero
   twist that answers no image (a zero stamp), state ``bad stamp``, and the log says why.
   A clock that has not started (sim time before the first ``/clock``: 0) judges no stamp
-  in the future; a clock that jumps back (a restarted simulator) restarts the rule.
+  in the future, and once it runs a stamp so taken that is in its future is forgotten (it
+  would refuse every later image as going backwards); a clock that jumps back (a
+  restarted simulator) restarts the rule. A negative stamp is no image's time: refused
+  the same way.
 - Values: s and s* are checked against their set's physical bounds
   (:func:`~sphere_servo.core.features.check_feature_vector`): a refused desired leaves the
   one held; refused features give a zero twist (``target lost``, the error names the bound).
@@ -235,13 +238,21 @@ class ServoCore:
         ``s`` (6,), or None when the target or a mark is lost; ``invalid``: why the features
         could not be read (they are then unusable: target lost).
         """
+        if stamp_ns < 0:  # before the epoch (sim time starts at 0): no image has it
+            reason = (f'features stamped {stamp_ns} ns refused: a stamp < 0 is no '
+                      "image's time")
+            return self._command(ServoState.BAD_STAMP, Level.WARN, reason=reason, fault=reason)
         age_ns = now_ns - stamp_ns
         if stamp_ns == self.last_stamp_ns:  # the same image again (a re-publication)
             return Unanswered(Ignored.REPEAT, age_ns, self.skipped)
         if age_ns > self.max_age_ns:  # superseded or late: not usable, not answered
             self.skipped += 1
             return Unanswered(Ignored.TOO_OLD, age_ns, self.skipped)
-        if now_ns < self.last_now_ns:  # the clock jumped back: a restarted simulator
+        last = self.stamps.last(FEATURES)
+        if now_ns < self.last_now_ns or (  # the clock jumped back: a restarted simulator
+                now_ns > 0 and last is not None
+                and last - now_ns > self.stamps.future_tolerance_ns):
+            # or it has started, and the last stamp, taken unjudged before, is in its future
             self.stamps.forget()
         self.last_now_ns = now_ns
         # a clock that has not started (sim time before the first /clock) judges no future

@@ -21,6 +21,7 @@ s; no names: the target or a mark is lost, the servo must stop. Desired features
 """
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -29,7 +30,7 @@ import numpy as np
 from sphere_servo.core.features import feature_names, FEATURE_SETS
 from sphere_servo.core.measurement import MeasurementError, Observation, SphereMeasurement
 from sphere_servo.core.targets import mark_names
-from sphere_servo.core.validation import check_array, check_number
+from sphere_servo.core.validation import Bound, check_array, check_number, refuse
 from sphere_servo.vision.detector import Detection
 
 SPHERE_NAMES = ('b_x', 'b_y', 'b_z', 'r_delta', 'quality', 'ellipse_u', 'ellipse_v',
@@ -67,19 +68,30 @@ class Measurement:
         return cls(tuple(names), tuple(float(v) for v in values))
 
     def as_dict(self) -> dict[str, float]:
-        """Map name → value; MeasurementError when names and values do not pair up."""
+        """
+        Map name → value; MeasurementError when the message is malformed.
+
+        Malformed: names and values that do not pair up, a name empty or given twice (which
+        of its values would be the image's?).
+        """
         if len(self.names) != len(self.values):
             raise MeasurementError(f'measurement has {len(self.names)} names but '
                                    f'{len(self.values)} values')
-        return dict(zip(self.names, self.values))
+        vals = dict(zip(self.names, self.values))
+        if len(vals) != len(self.names) or '' in vals:
+            bad = sorted(n for n, k in Counter(self.names).items() if k > 1 or not n)
+            refuse(MeasurementError, 'measurement names', bad, Bound.SHAPE,
+                   'each name non-empty and given once')
+        return vals
 
     def observation(self, kind: str) -> Observation:
         """
         Return the :class:`Observation` for ``kind`` ('special': P1, P2; 'cc': P1, P3).
 
         Raises :class:`MeasurementError` when the sphere or one of the two marks is
-        missing (the target is lost), or a value is not finite (refused: the error's
-        ``violation`` names it). The physical bounds are
+        missing (the target is lost), or a value is not finite, in any field, even one
+        not used here (refused: the error's ``violation`` names it); :meth:`as_dict`'s
+        refusals of a malformed message. The physical bounds are
         :func:`~sphere_servo.core.measurement.validated_observation`'s.
         """
         vals = self.as_dict()
@@ -100,6 +112,8 @@ class Measurement:
             except KeyError:
                 raise MeasurementError(f'mark {name} is not visible') from None
             q[name] = check_array(MeasurementError, f'{name} ray', q[name], (3,))
+        for name, v in vals.items():  # the fields not used too: no detector sends a NaN
+            check_number(MeasurementError, name, v)
         return Observation(SphereMeasurement(b, float(r_delta), vals.get('quality', 0.0)), q,
                            kind)
 

@@ -20,16 +20,16 @@ from geometry_msgs.msg import Pose, Twist
 import numpy as np
 import pinocchio as pin
 from sensor_msgs.msg import CameraInfo, Image
-from sphere_servo.pipeline.common import NS
+from sphere_servo.pipeline.common import NS, STAMP_END_NS
 from std_msgs.msg import Header
 
 _ENCODINGS = {3: 'rgb8', 1: 'mono8'}
 
 
 def stamp_from_ns(ns: int) -> Time:
-    """Build the ``builtin_interfaces/Time`` of ``ns`` ≥ 0 nanoseconds."""
-    if ns < 0:
-        raise ValueError(f'a stamp needs a time >= 0, got {ns} ns')
+    """Build the ``builtin_interfaces/Time`` of ``0 ≤ ns < STAMP_END_NS`` nanoseconds."""
+    if not 0 <= ns < STAMP_END_NS:  # rclpy would wrap a larger sec silently
+        raise ValueError(f'a stamp needs a time in [0, {STAMP_END_NS}) ns, got {ns} ns')
     return Time(sec=ns // NS, nanosec=ns % NS)
 
 
