@@ -56,10 +56,6 @@ def test_a_negative_stamp_is_refused(stamp, now):
     assert c.iteration == 0 and c.last_stamp_ns is None
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    'a zero stamp is "unset, answers no image" by the project convention '
-    '(pipeline/common.py), but test_pipeline_servo.py::test_age_rule_and_its_boundary '
-    'answers features stamped 0 as a usable image; the lead must choose'))
 @pytest.mark.parametrize('now', [SEC // 10, 0])
 def test_a_zero_stamp_is_refused(now):
     """

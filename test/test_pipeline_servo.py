@@ -102,11 +102,11 @@ def test_each_image_is_answered_once():
 
 def test_age_rule_and_its_boundary():
     c = core(max_image_age=0.5)
-    assert isinstance(answer(c, 0, now_ns=500 * MS), ServoCommand)  # exactly max: usable
-    late = answer(c, 1 * MS, now_ns=501 * MS + 1)
+    assert isinstance(answer(c, 1 * MS, now_ns=501 * MS), ServoCommand)  # exactly max: usable
+    late = answer(c, 2 * MS, now_ns=502 * MS + 1)
     assert late == Unanswered(Ignored.TOO_OLD, 500 * MS + 1, 1)
-    assert c.last_stamp_ns == 0 and c.iteration == 1
-    assert answer(c, 2 * MS, now_ns=900 * MS).skipped == 2
+    assert c.last_stamp_ns == 1 * MS and c.iteration == 1
+    assert answer(c, 3 * MS, now_ns=900 * MS).skipped == 2
     ahead = answer(c, 10 * MS, now_ns=0)  # the node clock behind (no /clock yet): usable
     assert isinstance(ahead, ServoCommand)
 

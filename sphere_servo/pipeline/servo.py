@@ -18,8 +18,8 @@ clock (sim time with ``use_sim_time``), ``wall_now`` a monotonic wall clock in s
   A clock that has not started (sim time before the first ``/clock``: 0) judges no stamp
   in the future, and once it runs a stamp so taken that is in its future is forgotten (it
   would refuse every later image as going backwards); a clock that jumps back (a
-  restarted simulator) restarts the rule. A negative stamp is no image's time: refused
-  the same way.
+  restarted simulator) restarts the rule. A zero stamp (unset: the servo's own zero
+  stamp answers no image) or a negative one is no image's time: refused the same way.
 - Values: s and s* are checked against their set's physical bounds
   (:func:`~sphere_servo.core.features.check_feature_vector`): a refused desired leaves the
   one held; refused features give a zero twist (``target lost``, the error names the bound).
@@ -238,9 +238,9 @@ class ServoCore:
         ``s`` (6,), or None when the target or a mark is lost; ``invalid``: why the features
         could not be read (they are then unusable: target lost).
         """
-        if stamp_ns < 0:  # before the epoch (sim time starts at 0): no image has it
-            reason = (f'features stamped {stamp_ns} ns refused: a stamp < 0 is no '
-                      "image's time")
+        if stamp_ns <= 0:  # unset (0: what answers no image), or before the epoch
+            what = 'an unset stamp (0)' if stamp_ns == 0 else 'a stamp < 0'
+            reason = f"features stamped {stamp_ns} ns refused: {what} is no image's time"
             return self._command(ServoState.BAD_STAMP, Level.WARN, reason=reason, fault=reason)
         age_ns = now_ns - stamp_ns
         if stamp_ns == self.last_stamp_ns:  # the same image again (a re-publication)
