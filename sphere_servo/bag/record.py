@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 from datetime import datetime
 import importlib
+import math
 import os
 import queue
 import signal
@@ -80,6 +81,20 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     opts = p.parse_args(argv)
     if not opts.commit_period > 0:
         p.error('--commit-period must be > 0')
+    # NaN compares false: each bound is written so that NaN fails it
+    if opts.duration is not None and not 0 < opts.duration < math.inf:
+        p.error(f'--duration must be a finite number of seconds > 0, got {opts.duration}')
+    if not opts.qos_depth >= 1:
+        p.error(f'--qos-depth must be >= 1, got {opts.qos_depth}')
+    if not 0 <= opts.idle_quiet < math.inf:
+        p.error(f'--idle-quiet must be a finite number of seconds >= 0, got {opts.idle_quiet}')
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    for t in opts.topics or []:
+        try:  # a name no publisher can have would be waited for in vain
+            validate_full_topic_name(topic_name(t))
+        except InvalidTopicNameException:
+            p.error(f'--topics: {t!r} is not a valid topic name')
     return opts
 
 

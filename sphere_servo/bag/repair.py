@@ -22,7 +22,7 @@ code 0 once ``metadata.yaml`` is written and lists at least one message, 1 other
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import fcntl
 from pathlib import Path
 import sys
@@ -99,6 +99,7 @@ class Reindexed:
     bag_dir: Path
     meta: BagMeta
     files: list
+    warnings: list = field(default_factory=list)
 
 
 def reindex(path: str | Path) -> Reindexed:
@@ -106,6 +107,10 @@ def reindex(path: str | Path) -> Reindexed:
     path = Path(path)
     if not path.exists():
         raise BagError(f'no such bag: {str(path)!r} does not exist')
+    if path.is_file() and path.suffix not in ('.mcap', '.db3') and path.name != 'metadata.yaml':
+        # its directory may hold a bag it was not asked to rewrite
+        raise BagError(f'{str(path)!r} is not a rosbag2 bag: give a bag directory, an .mcap '
+                       'or a .db3 file')
     bag_dir = path if path.is_dir() else path.parent
     files = storage_files(bag_dir)
     if not files:
@@ -113,7 +118,7 @@ def reindex(path: str | Path) -> Reindexed:
     storage = {'.mcap': 'mcap', '.db3': 'sqlite3'}[files[0].suffix]
     if any(f.suffix != files[0].suffix for f in files):
         raise BagError(f'{str(bag_dir)!r} holds both .mcap and .db3 files')
-    reports, merged, spans, modes = [], {}, [], set()
+    reports, merged, spans, modes, warnings = [], {}, [], set(), []
     for f in files:
         _unlocked(f)
         why = unclosed(f)
@@ -139,6 +144,12 @@ def reindex(path: str | Path) -> Reindexed:
         spans.append(span)
         for t in topics:
             old = merged.get(t.name)
+            if old is not None and t.msgtype != old.msgtype:
+                # the reader reads a topic as one type (its first file's): so does the count
+                warnings.append(f'topic {t.name} has type {t.msgtype} in {f.name} and '
+                                f'{old.msgtype} before: its {t.message_count} {t.msgtype} '
+                                'messages are not counted and will not be read')
+                continue
             merged[t.name] = t if old is None else TopicMeta(
                 t.name, old.msgtype, old.serialization_format, old.qos or t.qos,
                 old.type_hash or t.type_hash, old.message_count + t.message_count)
@@ -153,7 +164,7 @@ def reindex(path: str | Path) -> Reindexed:
             custom = read_metadata(bag_dir).custom_data
         except BagError:
             pass  # the metadata being replaced is unreadable: nothing to keep
-    n = sum(s.message_count for s in spans)
+    n = sum(t.message_count for t in merged.values())  # what a reader will read
     with_msgs = [s for s in spans if s.message_count]
     start = min((s.start_ns for s in with_msgs), default=0)
     end = max((s.start_ns + s.duration_ns for s in with_msgs), default=0)
@@ -162,7 +173,7 @@ def reindex(path: str | Path) -> Reindexed:
                    topics=tuple(merged.values()), compression_format='zstd' if mode else '',
                    compression_mode=mode, files=tuple(spans), custom_data=custom)
     write_metadata(bag_dir, meta)
-    return Reindexed(bag_dir, meta, reports)
+    return Reindexed(bag_dir, meta, reports, warnings)
 
 
 def _scan_topics(sc: mcap.Scan, name: str) -> tuple[list[TopicMeta], FileMeta]:
@@ -199,6 +210,8 @@ def main(args=None) -> int:
             line += f' ({r.detail}; {r.dropped_bytes} bytes cut)' if r.dropped_bytes else \
                 f' ({r.detail})'
         print(line)
+    for w in done.warnings:
+        print(f'reindex: warning: {w}', file=sys.stderr)
     print(f'reindex: wrote {done.bag_dir / "metadata.yaml"}: {done.meta.message_count} '
           f'messages on {len(done.meta.topics)} topics')
     if not done.meta.message_count:

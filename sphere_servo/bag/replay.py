@@ -21,6 +21,7 @@ it will play; a selection that plays nothing is an error (exit 1). ``--clock`` p
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
@@ -51,6 +52,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         p.error('--rate must be > 0')
     if opts.clock is not None and not opts.clock > 0:
         p.error('--clock frequency must be > 0')
+    # NaN compares false: each bound is written so that NaN fails it
+    if not 0 <= opts.delay < math.inf:
+        p.error(f'--delay must be a finite number of seconds >= 0, got {opts.delay}')
+    if opts.wait_for_subscribers is not None and not 0 < opts.wait_for_subscribers < math.inf:
+        p.error('--wait-for-subscribers must be a finite number of seconds > 0, got '
+                f'{opts.wait_for_subscribers}')
     return opts
 
 
@@ -86,6 +93,29 @@ def parse_remaps(remaps: list[str]) -> dict[str, str]:
             raise BagError(f'bad remap {r!r}: expected OLD:=NEW')
         out[topic_name(old)] = topic_name(new)
     return out
+
+
+def check_remaps(reader, conns, remaps: dict[str, str]) -> None:
+    """
+    Refuse remaps that would publish wrongly (raise BagError).
+
+    A remap of a topic the bag does not have (a typo would play the topic under its own
+    name), and two played topics of different types on one name (a publisher has one type:
+    the bytes of one would go out as the other).
+    """
+    stored = {topic_name(c.topic) for c in reader.connections}
+    unknown = sorted(set(remaps) - stored)
+    if unknown:
+        raise BagError(f'--remap of {", ".join(unknown)}: not in bag; it has: '
+                       f'{", ".join(sorted(stored)) or "(no topics)"}')
+    types: dict[str, tuple[str, str]] = {}
+    for c in conns:
+        name = topic_name(c.topic)
+        target = remaps.get(name, name)
+        first = types.setdefault(target, (c.msgtype, c.topic))
+        if first[0] != c.msgtype:
+            raise BagError(f'{c.topic} [{c.msgtype}] and {first[1]} [{first[0]}] would both '
+                           f'be published on {target}: remap one of them elsewhere')
 
 
 def _same_offer(a, b) -> bool:
@@ -236,6 +266,7 @@ def main(args=None) -> int:
     try:
         sel = select(reader, opts.topics, unplayable)
         info = summary(reader, opts.topics, unplayable)
+        check_remaps(reader, sel.connections, remaps)
         if not sel.count:
             raise BagError(f'nothing to play: the selection ({len(sel.connections)} topics, '
                            f'{len(sel.skipped)} skipped) holds no message')
