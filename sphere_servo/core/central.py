@@ -297,6 +297,11 @@ class CentralCamera:
             refuse(CameraError, f'{name} field', self, Bound.FIELD,
                    f'no pixel of the {self.width}x{self.height} image is in the field of the '
                    'model')
+        if limit * max(self.px, self.py) < 1.0:
+            # e.g. a unified ξ ≫ γ: its limit circle 1/√(ξ² − 1) is a fraction of a pixel
+            refuse(CameraError, f'{name} field', self, Bound.FIELD,
+                   f'the field of the model images into {limit * max(self.px, self.py):.3g} '
+                   'px about the principal point, less than one pixel')
         if is_fold and far >= limit:
             refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
                    f'the distortion folds inside the image (it stops increasing at '
