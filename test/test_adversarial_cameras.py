@@ -206,3 +206,48 @@ def test_a_camera_with_fx_and_fy_far_apart_is_still_one_camera():
     uv = image_grid(cam)
     q = cam.lift(uv)
     assert np.abs(pixels(cam, q) - uv).max() < 1e-6
+
+
+# --- tangential terms that fold -----------------------------------------------------------
+#: plumb_bob with p1 = 0.16: its fold curve (det ∂m_d/∂m = 0) is imaged inside the image
+#: about (113–194, 70–112) px; a 65 × 49 grid of lifts missed it (the inner sheet's lift
+#: succeeds on most pixels there) and the camera was accepted with pixels no ray reaches
+#: next to pixels two rays reach
+TANGENTIAL_FOLD = (640, 480, K(605.5590137743604, 703.8350434946567, 260.64667240945045,
+                               378.0739806260527),
+                   [-0.08117256991138871, 0.06495595577958606, 0.16438718890077628,
+                    0.07166609173224753, 0.0], 'plumb_bob')
+
+
+def test_a_tangential_fold_imaged_inside_the_image_is_refused():
+    with pytest.raises(CameraError, match='tangential distortion folds inside the image'):
+        camera_from_camera_info_fields(*TANGENTIAL_FOLD)
+    assert isinstance(camera_from_info(*TANGENTIAL_FOLD[:4]), Refusal)
+
+
+@pytest.mark.parametrize('model', ['plumb_bob', 'unified'])
+def test_an_accepted_tangential_distortion_reaches_every_pixel_of_its_field_once(model):
+    """
+    Tangential terms up to 0.2, radial ones, the principal point anywhere: 100 draws.
+
+    Accepted (ξ ≤ 1 or a pinhole: the natural field covers the whole image plane): every
+    pixel of a 2 px grid lifts, to the ray the closed form images there.
+    """
+    rng = np.random.default_rng({'plumb_bob': 11, 'unified': 12}[model])
+    accepted = 0
+    for _ in range(100):
+        fx = rng.uniform(150, 700)
+        fy, cx, cy = fx * rng.uniform(0.7, 1.4), rng.uniform(-0.5, 639.5), rng.uniform(-0.5, 479.5)
+        p1, p2 = rng.normal(0, 0.08, 2)
+        d = ([rng.normal(0, 0.2), rng.normal(0, 0.05), p1, p2, 0.0] if model == 'plumb_bob'
+             else [rng.uniform(0, 1.0), rng.normal(0, 0.2), rng.normal(0, 0.05), p1, p2])
+        try:
+            cam = camera_from_camera_info_fields(640, 480, K(fx, fy, cx, cy), d, model)
+        except CameraError:
+            continue
+        accepted += 1
+        uv = image_grid(cam, 321)
+        lifted = cam.lift_where(uv)
+        assert lifted.ok.all(), (d, uv[~lifted.ok][:3])
+        assert np.abs(pixels(cam, lifted.rays) - uv).max() < 1e-6, d
+    assert accepted >= 30, accepted
