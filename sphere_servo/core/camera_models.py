@@ -186,7 +186,10 @@ class UnifiedCamera(CentralCamera):
     @cached_property
     def _rho_limit(self) -> float:
         """Radius of ``m_u`` where the field ends naturally: ``1/√(ξ² − 1)`` for ξ > 1."""
-        return 1.0 / math.sqrt(self.xi ** 2 - 1.0) if self.xi > 1.0 else math.inf
+        if not self.xi > 1.0:
+            return math.inf
+        # ξ − 1 is exact near 1, and a product overflows to inf (limit 0), not an error
+        return 1.0 / math.sqrt((self.xi - 1.0) * (self.xi + 1.0))
 
     @cached_property
     def _rho_max(self) -> float:
@@ -313,10 +316,12 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     if len(d) != n:
         refuse(CameraError, 'CameraInfo.d', d, Bound.SHAPE,
                f'distortion_model {model!r} needs {n} coefficients in d')
-    width = check_number(CameraError, 'width', width)
-    height = check_number(CameraError, 'height', height)
+    # a fractional size is passed on as it is, for the model's check to refuse
+    width, height = (int(n) if n == int(n) else n for n in
+                     (check_number(CameraError, 'width', width),
+                      check_number(CameraError, 'height', height)))
     kw = {'px': float(k[0]), 'py': float(k[4]), 'u0': float(k[2]), 'v0': float(k[5]),
-          'width': int(width), 'height': int(height)}
+          'width': width, 'height': height}
     if model == 'equidistant':
         return FisheyeCamera(**kw, dist=tuple(d))
     if model == 'unified':

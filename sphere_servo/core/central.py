@@ -297,6 +297,11 @@ class CentralCamera:
             refuse(CameraError, f'{name} field', self, Bound.FIELD,
                    f'no pixel of the {self.width}x{self.height} image is in the field of the '
                    'model')
+        if limit * max(self.px, self.py) < 1.0:
+            # e.g. a unified ξ ≫ γ: its limit circle 1/√(ξ² − 1) is a fraction of a pixel
+            refuse(CameraError, f'{name} field', self, Bound.FIELD,
+                   f'the field of the model images into {limit * max(self.px, self.py):.3g} '
+                   'px about the principal point, less than one pixel')
         if is_fold and far >= limit:
             refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
                    f'the distortion folds inside the image (it stops increasing at '
@@ -308,7 +313,32 @@ class CentralCamera:
             md = self._md(uv)
             inside = np.hypot(md[:, 0], md[:, 1]) < 0.99 * limit
             ok = self.lift_where(uv[inside]).ok
-            if not ok.all():
+            bad = uv[inside][~ok][:1]
+            if not bad.size:
+                bad = self._tangential_fold_in_image()
+            if bad.size:
                 refuse(CameraError, f'{name} distortion', self, Bound.GEOMETRY,
                        'the tangential distortion folds inside the image near pixel '
-                       f'{uv[inside][~ok][0].tolist()}')
+                       f'{bad[0].tolist()}')
+
+    def _tangential_fold_in_image(self, n_az: int = 360, n_theta: int = 512) -> Points2:
+        """
+        Return a pixel (1, 2) of the image where the field's one-to-one sheet ends, or (0, 2).
+
+        Rays along ``n_az`` azimuths up to ``max_angle``: the first one the model does not
+        image one-to-one (``det ∂m_d/∂m ≤ 0``, a fold of the tangential terms) is where the
+        inner sheet ends; imaged inside the image, pixels near it have two rays (the inner
+        sheet's lift succeeds there, so a grid of lifts does not see it).
+        """
+        # short of the field's edge, where rays leave the field by rounding, not by a fold
+        th = np.linspace(0.0, self.max_angle * (1.0 - 1e-4), n_theta)[1:]
+        az = np.linspace(0.0, 2.0 * math.pi, n_az, endpoint=False)
+        T, A = np.meshgrid(th, az)                      # (n_az, n_theta − 1)
+        P = np.stack([np.sin(T) * np.cos(A), np.sin(T) * np.sin(A), np.cos(T)], -1)
+        md, ok, _ = self._distort_rays(P.reshape(-1, 3), False)
+        ok = ok.reshape(T.shape)
+        rows = np.flatnonzero(~ok.all(axis=1))
+        first = np.argmin(ok[rows], axis=1)             # the first ray off the sheet
+        md = md.reshape(*T.shape, 2)[rows, first]
+        uv = np.column_stack([self.px * md[:, 0] + self.u0, self.py * md[:, 1] + self.v0])
+        return uv[self.in_image(uv)][:1]

@@ -23,10 +23,19 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from sphere_servo.core.measurement import SphereMeasurement
+from sphere_servo.core.types import Vec3
+
+
+class CapCentre(NamedTuple):
+    """A cap's centre (``MarkFinder.cap_centre``): its unit ray (None: not measured), area seen."""
+
+    ray: Vec3 | None
+    seen: float
 
 
 @functools.lru_cache(maxsize=16)

@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.conics import (conic_pixels_to_normalized, ellipse_params, fit_conic,
                                       sampson_homogeneous)
 from sphere_servo.core.measurement import (MeasurementError, Observation, sphere_from_conic,
@@ -163,6 +164,7 @@ class _Candidate:
     marks: dict
     n_marks: int
     sure: bool = False
+    lift: PinholeLift | ModelLift | None = None     # how its pixels were lifted
 
 
 class Detector:
@@ -181,7 +183,7 @@ class Detector:
                     its lifted edge as through any other model (False: the same sphere).
     min_area_px, min_contrast, body_chroma_tol, K, max_edge_points, coarse_step
                     the silhouette's (:class:`~sphere_servo.vision.silhouette.SilhouetteFinder`).
-    chroma_tol, min_mark_px, mark_radius
+    chroma_tol, min_mark_px, mark_radius, min_mark_seen
                     the marks' (:class:`~sphere_servo.vision.marks.MarkFinder`).
     """
 
@@ -191,7 +193,7 @@ class Detector:
                  chroma_tol: float = 0.12, body_chroma_tol: float = 0.08,
                  min_mark_px: float = 3.0, K: int = 3, max_edge_points: int = 100,
                  coarse_step: int = 4, mark_radius: float = float(np.radians(9.0)),
-                 conic_path: bool = True):
+                 conic_path: bool = True, min_mark_seen: float = 0.8):
         self.colors = dict(DEFAULT_COLORS if colors is None else colors)
         if 'body' not in self.colors:
             raise ValueError("colors must contain 'body'")
@@ -202,13 +204,15 @@ class Detector:
             coarse_step=coarse_step,
             marks=[c for k, c in self.colors.items() if k != 'body'], mark_chroma_tol=chroma_tol)
         self.marks = MarkFinder(self.colors, surface_marks, chroma_tol=chroma_tol,
-                                min_mark_px=min_mark_px, mark_radius=mark_radius)
+                                min_mark_px=min_mark_px, mark_radius=mark_radius,
+                                min_seen=min_mark_seen)
         self.mark_names = self.marks.mark_names
         self.geometry = geometry
         self.bounds = FitBounds() if bounds is None else bounds
         self.max_fits = int(max_fits)
         self.conic_path = bool(conic_path)
         self._lift = (None, None)   # (camera, its lift): a camera's table is looked up once
+        self._cut_lift = (None, None)   # (camera, its model lift) for spheres cut by the border
 
     @classmethod
     def for_target(cls, target: Target, **kw) -> 'Detector':
@@ -222,6 +226,8 @@ class Detector:
         colors = {'body': cols['body'], a: cols[a], b: cols.get(b, cols.get('P2'))}
         surface = (a, b) if target.kind == SPECIAL else (a,)
         kw.setdefault('mark_radius', target.mark_radius)
+        if not target.is_sphere:        # the caps' area on the estimated sphere is not theirs
+            kw.setdefault('min_mark_seen', 0.0)
         kw.setdefault('geometry', MarkGeometry.for_target(target))
         kw.setdefault('bounds', FitBounds.for_target(target))
         return cls(colors, surface, **kw)
@@ -233,6 +239,23 @@ class Detector:
             lift = lift_of(camera, self.conic_path)
             self._lift = (camera, lift)
         return lift
+
+    def cut_lift(self, camera, lift: PinholeLift | ModelLift) -> PinholeLift | ModelLift:
+        """
+        Return how the pixels of a sphere cut by the image border are lifted.
+
+        Through the camera's model (the sphere's cone, 3 parameters, fitted to the lifted
+        edge) when ``lift`` is the conic path's ``K`` and ``camera`` has a model: a general
+        conic (5 parameters) fitted to the short arc a border leaves is ill-conditioned, and
+        measures a sphere several per cent off with a small residual. Else ``lift``.
+        """
+        if lift.lifted or not isinstance(camera, CentralCamera):
+            return lift
+        last, cut = self._cut_lift
+        if last is not camera:
+            cut = lift_of(camera, conic_path=False)
+            self._cut_lift = (camera, cut)
+        return cut
 
     def detect(self, image: np.ndarray, encoding: str, camera) -> Detection:
         """
@@ -263,12 +286,13 @@ class Detector:
             u, v = blob.centre(s)
             if any(c.sure and _inside(c.sil, u, v) for c in accepted):
                 continue                    # a part, or another level, of a sure fit
-            sil = self.silhouette.fit(blob, img, rgb, s, lift if lift.lifted else None)
+            blift = self.cut_lift(camera, lift) if blob.cut else lift
+            sil = self.silhouette.fit(blob, img, rgb, s, blift if blift.lifted else None)
             if not isinstance(sil, NotDetected):
                 (cu, cv_), _, _ = sil.ellipse
                 if not any(_inside(o, cu, cv_) for o in seen):
                     seen.append(sil)        # a sphere-like object (bounds or not)
-                sil = self._candidate(sil, img, encoding, rgb, lift)
+                sil = self._candidate(sil, img, encoding, rgb, blift)
             if isinstance(sil, NotDetected) or not sil.sure:
                 # its level may have cut into the sphere's shaded side: try the blob grown
                 # down to the level of the background around it, next
@@ -280,7 +304,7 @@ class Detector:
                     miss = sil
                 continue
             if sil.sure and sil.n_marks == len(self.mark_names):
-                return self._found(sil, lift)   # the target: a sure fit, all its marks fit
+                return self._found(sil)         # the target: a sure fit, all its marks fit
             accepted.append(sil)
         if accepted:
             # most marks, then the edge contrasted around most of the contour, then the
@@ -293,7 +317,7 @@ class Detector:
                 return Detection.missed(
                     NotDetected(Reason.AMBIGUOUS, f'{len(seen)} in view'),
                     self.marks.not_visible())
-            return self._found(best, lift)
+            return self._found(best)
         # no blob with a contrasted edge, and the frame is the body's colour and bright
         early = miss is None or _STAGE[miss.reason] <= _STAGE[Reason.LOW_CONTRAST]
         if rgb is not None and early and self.silhouette.fills_frame(rgb):
@@ -335,7 +359,7 @@ class Detector:
             why = self.geometry.check(sphere, q)
             if why is not None:
                 return why
-        return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil))
+        return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil), lift)
 
     @staticmethod
     def _drop_foreign_arc(sil: Silhouette, C_n, sphere: SphereMeasurement, lift):
@@ -385,8 +409,8 @@ class Detector:
                         coverage=nk / max(sil.n_profiles, 1), edge=Ek, cone=cone), C2, sphere2)
 
     @staticmethod
-    def _found(cand: _Candidate, lift) -> Detection:
-        sil, sphere = cand.sil, cand.sphere
+    def _found(cand: _Candidate) -> Detection:
+        sil, sphere, lift = cand.sil, cand.sphere, cand.lift
         c, ax, ang = sil.ellipse
         contour = None
         if sil.cone is not None:

@@ -26,7 +26,8 @@ import numpy as np
 from sphere_servo.core.conics import homogeneous, sampson_homogeneous
 from sphere_servo.core.measurement import MeasurementError, SphereMeasurement
 from sphere_servo.core.types import Image, Vec3
-from sphere_servo.vision.caps import match_centroid, predicted_direction, tangent_basis
+from sphere_servo.vision.caps import (CapCentre, match_centroid, predicted_direction,
+                                      tangent_basis)
 from sphere_servo.vision.cone import limb_distance
 from sphere_servo.vision.image import chroma_test, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
@@ -170,15 +171,25 @@ class MarkFinder:
     chroma_tol      largest chromaticity distance of a pixel to a mark's colour.
     min_mark_px     smallest weighted area of a visible mark.
     mark_radius     angular radius (rad) of the painted caps (fits a cap cut by the limb).
+    min_seen        a whole cap (away from the limb) whose measured area on the sphere is
+                    less than this fraction of the painted one is not measured: part of it
+                    was not classified as the mark (0: not checked, for a body that is not a
+                    sphere, where the area on the estimated sphere is not the cap's).
     """
 
     # a cap's (grown) pixels this close to the silhouette (px): the cap may be cut by the limb
     limb_px = 1.5
     # a cap cut by the limb by more than this (rad) is not measured from its image centroid
     max_cut = math.radians(2.0)
+    # the largest fraction of a cap's rim pixels with a channel clipped at 255 (rim fit)
+    max_clipped = 0.1
+    # a whole cap (away from the limb) whose measured area is less than this fraction of the
+    # painted one is not measured
+    min_seen = 0.8
 
     def __init__(self, colors: dict, surface_marks, *, chroma_tol: float = 0.12,
-                 min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0))):
+                 min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0)),
+                 min_seen: float = 0.8):
         self.mark_names = tuple(k for k in colors if k != 'body')
         self.surface_marks = set(surface_marks)
         # a mark off the surface (the CC tip) comes with a stick that may lie across a cap
@@ -186,7 +197,10 @@ class MarkFinder:
         self.chroma_tol = float(chroma_tol)
         self.min_mark_px = float(min_mark_px)
         self.mark_radius = float(mark_radius)
+        self.min_seen = float(min_seen)
         self.cos_mark = float(np.cos(mark_radius))
+        # the painted cap's area on the unit sphere (units of r²)
+        self.cap_area = 2.0 * math.pi * (1.0 - self.cos_mark)
         body = np.asarray(colors['body'], float)
         # (3, 2): rgb → (a, b) with rgb ≈ a·mark + b·body (least squares)
         self._unmix = {k: np.linalg.pinv(np.column_stack([np.asarray(colors[k], float),
@@ -288,7 +302,8 @@ class MarkFinder:
             rim = None
             if name in self.surface_marks:
                 # coverage by unmixing: pixel = a·shade·mark + b·shade·body, α = a/(a + b)
-                ab = roi[gy0:gy1, gx0:gx1][yy, xx].astype(np.float64) @ self._unmix[name]
+                pix = roi[gy0:gy1, gx0:gx1][yy, xx]
+                ab = pix.astype(np.float64) @ self._unmix[name]
                 alpha = ab[:, 0] / np.maximum(ab[:, 1], 1e-9)
                 np.minimum(np.maximum(alpha, 0.0, out=alpha), 1.0, out=alpha)
                 inner = cv2.erode(full, _K3)[yy, xx]       # 1 inside, 0 on the rim
@@ -324,6 +339,14 @@ class MarkFinder:
                         # away from the silhouette
                         rim = ((inner == 0) & (alpha > 0.2) & (alpha < 0.8)
                                & (dsil > self.limb_px + 1.0))
+                        if np.count_nonzero(pix[rim].max(axis=1) >= 255) \
+                                > self.max_clipped * max(np.count_nonzero(rim), 1):
+                            # clipped levels are no mix of the mark's and the body's
+                            # colours: the rim the unmixing finds is not the cap's
+                            marks[name] = Mark.lost(name, Reason.MARK_UNMEASURABLE,
+                                                    'its rim is clipped (over-exposed)',
+                                                    partial=True)
+                            continue
             else:
                 # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
                 # with the background, whose chromaticity says nothing of coverage)
@@ -333,9 +356,22 @@ class MarkFinder:
                 marks[name] = Mark.lost(name, Reason.MARK_NOT_FOUND,
                                         f'{area:.1f} px < {self.min_mark_px:.0f}', area)
                 continue
+            lo, hi = pts.min(axis=0) + (x0, y0), pts.max(axis=0) + (x0, y0)
+            if lo.min() <= 0 or hi[0] >= W - 1 or hi[1] >= H - 1:
+                # the image border hides part of the mark: its visible part's mean is not
+                # its centre, and no rim model knows where the border cuts it
+                marks[name] = Mark.lost(name, Reason.MARK_CUT_BY_BORDER, area_px=area,
+                                        partial=True)
+                continue
             if name in self.surface_marks:
                 alpha *= w_sr                   # coverage × solid angle: the rays' weights
-                ray = self.cap_centre(sphere, q, alpha, rim, hits=not near_limb)
+                ray, seen = self.cap_centre(sphere, q, alpha, rim, hits=not near_limb)
+                if ray is not None and seen < self.min_seen:
+                    # a whole cap whose measured area is a fraction of the painted one: part
+                    # of it was not classified as the mark (clipped colours, an occluder)
+                    marks[name] = Mark.lost(name, Reason.MARK_INCOMPLETE,
+                                            f'{100 * seen:.0f} % of its area seen', area)
+                    continue
                 if ray is None:
                     marks[name] = Mark.lost(name, Reason.MARK_UNMEASURABLE, area_px=area,
                                             partial=True) if rim is not None else \
@@ -354,9 +390,9 @@ class MarkFinder:
         return marks
 
     def cap_centre(self, sphere: SphereMeasurement, q: np.ndarray, w: np.ndarray,
-                   rim: np.ndarray | None = None, hits: bool = False) -> Vec3 | None:
+                   rim: np.ndarray | None = None, hits: bool = False) -> CapCentre:
         """
-        Measure the unit ray of a painted cap's centre from its pixels.
+        Measure the unit ray of a painted cap's centre from its pixels (:class:`CapCentre`).
 
         ``q`` (3, N): the pixels' unit rays, ``w`` their coverage times their solid angle.
 
@@ -378,7 +414,8 @@ class MarkFinder:
 
         Returns the direction of ``s_n,t + m`` (m: the unit normal at the centre), or None
         when the centre cannot be measured (it faces away from the camera, or the cap's
-        model finds no visible part).
+        model finds no visible part), and the fraction of the cap's area
+        ``2π (1 − cos mark_radius)`` (units of r²) the weights cover (NaN near the limb).
         """
         rho, nn, cos_i = on_sphere(sphere, q, hits and rim is None)
         s_nt = sphere.s_nt
@@ -388,7 +425,9 @@ class MarkFinder:
         c /= np.maximum(cos_i, 0.1)
         if nn is not None:
             c /= nn
-        m = q @ (c * rho) - float(c.sum()) * s_nt
+        area = float(c.sum())
+        seen = area / self.cap_area if rim is None else math.nan
+        m = q @ (c * rho) - area * s_nt
         m /= max(math.sqrt(float(m @ m)), 1e-300)
         if rim is not None:
             # near the limb: the rim's circle (outliers, e.g. the CC stick, dropped) or, when
@@ -402,12 +441,12 @@ class MarkFinder:
                 if m_rim is not None and self._cut_by(sphere, m_rim) >= self.max_cut:
                     m_rim = None        # a cap mostly hidden: its centroid says too little
             if m_rim is None:
-                return None
+                return CapCentre(None, seen)
             m = m_rim
         P = s_nt + m
         if float(m @ P) >= 0:                   # the centre faces away: not measurable
-            return None
-        return P / math.sqrt(float(P @ P))
+            return CapCentre(None, seen)
+        return CapCentre(P / math.sqrt(float(P @ P)), seen)
 
     def _cut_by(self, sphere: SphereMeasurement, m: np.ndarray) -> float:
         """

@@ -30,6 +30,8 @@ class Reason(Enum):
     MARK_NOT_FOUND = 'mark {mark} not found'
     MARK_FACES_AWAY = 'mark {mark} faces away from the camera'
     MARK_UNMEASURABLE = 'mark {mark} cut by the limb, too little of its rim to measure'
+    MARK_CUT_BY_BORDER = 'mark {mark} cut by the image border'
+    MARK_INCOMPLETE = 'mark {mark} seen only in part'
     MARK_OFF_SPHERE = 'mark {mark} lies outside the sphere'
 
 
