@@ -22,14 +22,14 @@ import struct
 import subprocess
 import sys
 
+from bag_cases import foxy_qos, STRING, string_cdr, TS
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
+from sphere_servo.bag import mcap
+from sphere_servo.bag.bagio import iter_raw, open_bag
 import yaml
 
 pytest.importorskip('rclpy')
-from bag_cases import foxy_qos, string_cdr, STRING, TS  # noqa: E402
-from sphere_servo.bag import mcap  # noqa: E402
-from sphere_servo.bag.bagio import iter_raw, open_bag  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BOOL = 'std_msgs/msg/Bool'

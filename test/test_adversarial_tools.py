@@ -22,11 +22,11 @@ import shutil
 import subprocess
 import sys
 
+from bag_cases import rosbag2_case
 import pytest
+from sphere_servo.bag.bagio import BagError, open_bag, select
 
 pytest.importorskip('rclpy')
-from bag_cases import rosbag2_case  # noqa: E402
-from sphere_servo.bag.bagio import BagError, open_bag, select  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 MODULES = {'record': 'sphere_servo.bag.record', 'replay': 'sphere_servo.bag.replay',
