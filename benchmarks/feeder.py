@@ -7,9 +7,10 @@ A camera for the loop benchmark: rendered 640×480 rgb8 frames at a fixed rate, 
 and ``servo`` in one process on one executor, as ``launcher --single-process`` runs the
 pipeline (:func:`sphere_servo.ros.params.run`, consumers constructed first).
 
-The feeder publishes ``camera/camera_info`` and ``camera/image_raw`` (QoS
-:data:`sphere_servo.ros.qos.SENSOR`) from a wall timer, each stamped with the system clock
-right before ``publish``, so that the servo's ``image_age`` (its clock at the twist's
+The feeder publishes ``camera/camera_info`` then ``camera/image_raw`` (the order arm_sim
+publishes them in; QoS :data:`sphere_servo.ros.qos.SENSOR`) from a wall timer, each frame a
+message built anew, both stamped with the system clock right before they are published, so
+that the servo's ``image_age`` (its clock at the twist's
 publication − the image stamp) is the pipeline's image stamp → twist publish latency. It
 shows the desired pose until ``/bench_feeder/far`` (std_srvs/Trigger) is called, then the
 far pose (nothing moves: the servo answers every frame with the same twist). On exit it
@@ -58,10 +59,12 @@ def feeder_node(rate: float):
             img = self.frames[self.far]
             hdr = Header(frame_id='camera_optical_frame')
             msg = image_from_array(img, hdr)
+            info = camera_info_from_intrinsics(self.camera, hdr)
             hdr.stamp = self.get_clock().now().to_msg()
-            msg.header.stamp = hdr.stamp
+            msg.header.stamp = info.header.stamp = hdr.stamp
+            # the camera_info first, as arm_sim publishes it: the image finds its own
+            self.pub_info.publish(info)
             self.pub_image.publish(msg)
-            self.pub_info.publish(camera_info_from_intrinsics(self.camera, hdr))
             if self.far:
                 self.stamps.append(hdr.stamp.sec + hdr.stamp.nanosec * 1e-9)
 

@@ -3,8 +3,11 @@ A bare sensor_msgs/Image hop: a publisher, a subscriber, or both in one process.
 
 ``python -m benchmarks.hop pub|sub|both [--rate 30] [--seconds 5] [--width 640 --height 480]``
 
-The processes the transport benchmark and the two-host test start (no sphere_servo code in
-the loop). Every image is stamped with the publisher's ROS clock (the system clock) right
+The processes the transport benchmark and the two-host test start (none of the nodes' code
+in the loop). Every image is a message built anew from the same pixels by
+:func:`~sphere_servo.ros.conversions.image_from_array`, as arm_sim and
+``benchmarks.feeder`` build each frame's (one message published again and again is slower to
+publish in one process), and stamped with the publisher's ROS clock (the system clock) right
 before ``publish``; the subscriber takes the same clock first thing in its callback, so on one
 host ``arrival − stamp`` is the hop's latency (serialisation, transport, executor, conversion
 to Python).
@@ -90,8 +93,11 @@ def main(argv=None) -> int:
         ap.error('--rate, --width, --height and --depth must be positive')
 
     import rclpy
-    from sphere_servo.ros.executors import make_executor
+    import numpy as np
     from sensor_msgs.msg import Image
+    from sphere_servo.ros.conversions import image_from_array
+    from sphere_servo.ros.executors import make_executor
+    from std_msgs.msg import Header
 
     rclpy.init()
     stop = {'now': False}
@@ -124,10 +130,9 @@ def main(argv=None) -> int:
         pub_node = rclpy.create_node('hop_pub')
         pub = pub_node.create_publisher(Image, args.topic, qos)
         executor.add_node(pub_node)
-        msg = Image(height=args.height, width=args.width, encoding='rgb8', is_bigendian=0,
-                    step=3 * args.width)
-        msg.data = bytes(range(256)) * (3 * args.width * args.height // 256) \
-            + bytes(3 * args.width * args.height % 256)
+        n = 3 * args.width * args.height
+        pixels = np.frombuffer(bytes(range(256)) * (n // 256) + bytes(n % 256), np.uint8)
+        pixels = pixels.reshape(args.height, args.width, 3)
         deadline = time.monotonic() + args.match_timeout
         while pub.get_subscription_count() == 0 and not stop['now']:
             if time.monotonic() > deadline:
@@ -147,7 +152,7 @@ def main(argv=None) -> int:
                 if wait <= 0:
                     break
                 executor.spin_once(timeout_sec=wait)
-            msg.header.frame_id = 'warmup' if k < n_warm else 'hop'
+            msg = image_from_array(pixels, Header(frame_id='warmup' if k < n_warm else 'hop'))
             msg.header.stamp = pub_node.get_clock().now().to_msg()
             pub.publish(msg)
             sent += k >= n_warm
