@@ -4,17 +4,20 @@ A camera for the loop benchmark: rendered 640×480 rgb8 frames at a fixed rate, 
 ``python -m benchmarks.feeder feeder --rate 30``: the feeder alone (the images of the
 3-process pipeline: ``detector``, ``features`` and ``servo`` run as their own processes).
 ``python -m benchmarks.feeder single --rate 30``: the feeder, ``detector``, ``features``
-and ``servo`` in one process on one executor, as ``launcher --single-process`` runs the
-pipeline (:func:`sphere_servo.ros.params.run`, consumers constructed first).
+and ``servo`` in one process, as ``launcher --single-process`` runs the pipeline
+(:func:`sphere_servo.ros.params.run`, consumers constructed first).
 
-The feeder publishes ``camera/camera_info`` then ``camera/image_raw`` (the order arm_sim
-publishes them in; QoS :data:`sphere_servo.ros.qos.SENSOR`) from a wall timer, each frame a
+The feeder stands for arm_sim: it publishes ``camera/camera_info`` then ``camera/image_raw``
+(arm_sim's order; QoS :data:`sphere_servo.ros.qos.SENSOR`) from a wall timer, each frame a
 message built anew, both stamped with the system clock right before they are published, so
-that the servo's ``image_age`` (its clock at the twist's
-publication − the image stamp) is the pipeline's image stamp → twist publish latency. It
-shows the desired pose until ``/bench_feeder/far`` (std_srvs/Trigger) is called, then the
-far pose (nothing moves: the servo answers every frame with the same twist). On exit it
-prints one JSON line ``{"stamps": [...]}``: the stamps (s) of every far-pose frame it sent.
+that the servo's ``image_age`` (its clock at the twist's publication − the image stamp) is
+the pipeline's image stamp → twist publish latency; and it takes the twists of
+``camera/cmd_vel`` with their ``MessageInfo``, as arm_sim does, so that it spins on the
+executor arm_sim gets (:mod:`sphere_servo.ros.executors`: in one process, apart from the
+other nodes, on a thread of its own). It shows the desired pose until
+``/bench_feeder/far`` (std_srvs/Trigger) is called, then the far pose (nothing moves: the
+servo answers every frame with the same twist). On exit it prints one JSON line
+``{"stamps": [...]}``: the stamps (s) of every far-pose frame it sent.
 """
 from __future__ import annotations
 
@@ -26,12 +29,13 @@ import sys
 def feeder_node(rate: float):
     """Return the feeder node (see the module docstring); rclpy must be initialised."""
     from rclpy.node import Node
+    from geometry_msgs.msg import TwistStamped
     from sensor_msgs.msg import CameraInfo, Image
     from sphere_servo.core.camera import CameraIntrinsics
     from sphere_servo.core.targets import special_sphere
     from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
     from sphere_servo.ros.conversions import camera_info_from_intrinsics, image_from_array
-    from sphere_servo.ros.qos import SENSOR
+    from sphere_servo.ros.qos import COMMAND, SENSOR
     from sphere_servo.vision.renderer import Renderer
     from std_msgs.msg import Header
     from std_srvs.srv import Trigger
@@ -50,6 +54,12 @@ def feeder_node(rate: float):
             self.pub_image = self.create_publisher(Image, 'camera/image_raw', SENSOR)
             self.create_service(Trigger, '~/far', self._go_far)
             self.create_timer(1.0 / rate, self._tick)
+            # with their MessageInfo, as arm_sim takes them (see the module docstring)
+            self.twists = 0
+            self.create_subscription(TwistStamped, 'camera/cmd_vel', self._on_twist, COMMAND)
+
+        def _on_twist(self, msg, info):
+            self.twists += 1
 
         def _go_far(self, request, response):
             self.far = response.success = True

@@ -29,7 +29,7 @@ from rclpy.signals import SignalHandlerOptions
 from sphere_servo.pipeline.config import ConfigError, read_yaml
 from sphere_servo.pipeline.params import (check_names, NodeParams, Param, ParameterError,
                                           ROS_PARAMETERS)
-from sphere_servo.ros.executors import make_executor, wants_message_info
+from sphere_servo.ros.executors import NodeExecutors
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
@@ -173,11 +173,12 @@ def run(node_factory, name: str, args=None) -> None:
 
     An external shutdown ends it too. Then ``on_shutdown()`` (if the node has one: the
     servo's last word is a zero twist), ``destroy_node()`` and ``rclpy.try_shutdown()``;
-    several nodes share one executor and are shut down in the list's order. rclpy's own
-    signal handler is disabled so the context is still valid in ``on_shutdown()``. The
-    start-up's objects are frozen before the first spin (:func:`freeze_startup`). A bad
-    params file, a refused or an undeclared parameter end the process with a one-line
-    message and exit code 2.
+    several nodes are spun by :class:`~sphere_servo.ros.executors.NodeExecutors` (one
+    executor; with arm_sim among others, its own on a thread) and shut down in the list's
+    order. rclpy's own signal handler is disabled so the context is still valid in
+    ``on_shutdown()``. The start-up's objects are frozen before the first spin
+    (:func:`freeze_startup`). A bad params file, a refused or an undeclared parameter end
+    the process with a one-line message and exit code 2.
     """
     try:
         check_params_files(sys.argv if args is None else args)
@@ -193,20 +194,24 @@ def run(node_factory, name: str, args=None) -> None:
     except (ParameterError, InvalidParameterValueException, InvalidParameterTypeException,
             ValueError, TypeError, FileNotFoundError, ImportError, ConfigError) as exc:
         _refuse(name, exc)
+    executors = None
     try:
-        executor = make_executor(message_info=wants_message_info(nodes))
-        for node in nodes:
-            executor.add_node(node)
+        executors = NodeExecutors(nodes)
         freeze_startup()
+        executors.start()
         while rclpy.ok() and not stop.requested:  # the timeout bounds the reaction time
-            executor.spin_once(timeout_sec=0.1)
+            executors.spin_once(timeout_sec=0.1)
     except ExternalShutdownException:
         pass
     finally:
         for node in nodes:
+            if executors is not None and executors.threaded(node):
+                executors.stop_threads()  # its callbacks must not run beside on_shutdown
             on_exit = getattr(node, 'on_shutdown', None)
             if on_exit is not None:
                 on_exit()
+        if executors is not None:
+            executors.stop_threads()
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
