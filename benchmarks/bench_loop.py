@@ -14,8 +14,9 @@ discovery on localhost:
   images from a feeder process, ``benchmarks.feeder``): image stamp → twist publish, the
   servo's ``image_age`` (its clock right after it published the twist − the stamp taken
   right before the image was published: three DDS hops and the three callbacks);
-- the pipeline in single-process mode (feeder, detector, features and servo on one
-  executor, as ``launcher --single-process`` runs the nodes): the same figure;
+- the pipeline in single-process mode, as ``launcher --single-process`` runs the nodes
+  (detector, features and servo on the EventsExecutor; the feeder, which stands for
+  arm_sim, on arm_sim's classic executor on a thread of its own): the same figure;
 - twist *arrival* in this process − image stamp (one hop more), for information;
 - the floor of the same path (``benchmarks.relay``): three relays that answer each message
   at once with an empty one on the pipeline's topics, QoS and executor, in three processes
