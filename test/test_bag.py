@@ -182,8 +182,18 @@ def test_interrupt_first_drains_what_arrived(launch, test_node, tmp_path):
     rec = launch('record', '-o', str(out), '--topics', '/burst')
     pub = node.create_publisher(String, '/burst', QoSProfile(
         depth=200, reliability=ReliabilityPolicy.RELIABLE))
-    spin(15.0, until=lambda: pub.get_subscription_count() > 0 and 'subscribed to' in rec.log())
-    spin(0.3)
+    # matched on the recorder's side too (its ready service), not only on the writer's: a
+    # sample that reaches a reader before it knows the writer is dropped, and repaired only
+    # at the writer's next heartbeat (3 s), after the drain
+    from std_srvs.srv import Trigger
+    ready = node.create_client(Trigger, '/recorder/ready')
+
+    def is_ready() -> bool:
+        fut = ready.call_async(Trigger.Request())
+        return spin(10.0, until=fut.done) and fut.result().success
+    assert spin(15.0, until=lambda: pub.get_subscription_count() > 0
+                and ready.service_is_ready()), rec.log()
+    wait_for(is_ready, 20.0, what='the recorder to match the writer')
     rec.popen.send_signal(signal.SIGSTOP)
     try:
         for i in range(80):
@@ -234,7 +244,34 @@ def test_ready_service_names_what_is_not_recorded_yet(launch, test_node, tmp_pat
     wait_for(lambda: (spin(0.1), not ask().success)[1], 20.0,
              what='the recorder to see the unmatched publisher')
     assert f'{TOPICS[2]} (not matched with every publisher yet)' in ask().message
+    talker.publish(0)  # a recorder that recorded nothing exits 1 (the test below)
+    spin(1.0)
     assert late and rec.stop() == 0, rec.log()
+
+
+@pytest.mark.parametrize('publisher', [False, True], ids=['no publisher', 'silent publisher'])
+def test_a_recording_of_nothing_exits_1_and_says_why(launch, test_node, tmp_path, publisher):
+    """
+    A recorder that wrote no message did nothing: exit 1, naming what it had subscribed to.
+
+    With no publisher of the topic it never subscribed; with one that never publishes, it
+    subscribed and nothing came. The empty bag is left, valid, for the record.
+    """
+    node, spin = test_node
+    out = tmp_path / 'bag'
+    rec = launch('record', '-o', str(out), '--topics', '/nothing_here')
+    if publisher:
+        pub = node.create_publisher(String, '/nothing_here', QoSProfile(depth=10))
+        assert spin(20.0, until=lambda: pub.get_subscription_count() > 0), rec.log()
+    else:
+        assert spin(20.0, until=lambda: 'recording to' in rec.log()), rec.log()
+    spin(0.5)
+    assert rec.stop() == 1, rec.log()
+    log = rec.log()
+    assert 'no message was recorded' in log
+    assert ('subscribed to /nothing_here' in log) is publisher, log
+    with AnyReader([out], default_typestore=TS) as reader:
+        assert reader.message_count == 0
 
 
 def test_idle_service_says_when_nothing_new_came(launch, test_node, tmp_path):

@@ -25,7 +25,8 @@ bag (:mod:`sphere_servo.bag.repair`). Ctrl-C, SIGTERM or the end of ``--duration
 at once: the time of the interrupt is the cut; what the recorder had already taken in, and
 what its subscriptions already hold that was sent or received before the cut, goes in the
 bag; anything later does not; the subscriptions are then destroyed and the bag closed,
-within a second.
+within a second. A recording that wrote no message did nothing: it exits 1, naming the
+topics it had subscribed to (the empty bag is left as it is).
 """
 from __future__ import annotations
 
@@ -461,6 +462,13 @@ def main(args=None) -> int:
         print(f'  {name}: {n}')
     if sink.error is not None:
         print(f'record: error: writing failed: {sink.error}', file=sys.stderr)
+        return 1
+    if total == 0:  # a bag with nothing in it: the tool did nothing, say why
+        subscribed = sorted(node.callbacks) if node is not None else []
+        print('record: error: no message was recorded '
+              + (f'(subscribed to {", ".join(subscribed)}, none published)' if subscribed
+                 else '(no topic asked for had a publisher)') + f'; the bag {path} is empty',
+              file=sys.stderr)
         return 1
     return 0
 
