@@ -64,7 +64,7 @@ def test_a_node_on_either_executor_answers_and_stops(choice, launch, test_node):
     assert 'EventsExecutor' not in proc.log()  # no fall-back warning: this rclpy has it
 
 
-def test_a_callback_that_reads_its_message_info_gets_it(monkeypatch):
+def test_a_callback_that_reads_its_message_info_gets_it(monkeypatch, ros_env):
     """
     A node whose callback takes (msg, info) spins where info is passed, and gets it.
 
@@ -77,7 +77,7 @@ def test_a_callback_that_reads_its_message_info_gets_it(monkeypatch):
     from std_msgs.msg import String
     monkeypatch.delenv(VARIABLE, raising=False)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=0)
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
     nodes = []
     try:
         nodes = [cls(context=ctx) for cls in node_classes(NODE_CLASSES)]
