@@ -185,7 +185,20 @@ def _pose(xyz_rpy) -> pin.SE3:
 
 
 def sim_arm(p: ArmSimParams) -> ArmModel:
-    """Return the simulated UR5: its URDF, hand-eye transform, target pose, limits, watchdog."""
+    """
+    Return the simulated UR5: its URDF, hand-eye transform, target pose, limits, watchdog.
+
+    ParameterError when the arm refuses them (``start_joints`` outside the URDF's joint
+    limits: the elbow's are ±π, the parameter's bounds ±2π).
+    """
+    try:
+        return _arm(p)
+    except ValueError as exc:
+        raise ParameterError(f'start_joints={list(p.start_joints)} or the arm parameters '
+                             f'refused by the UR5 model: {exc}') from exc
+
+
+def _arm(p: ArmSimParams) -> ArmModel:
     return ArmModel(
         urdf_path=p.urdf_path or None, tool0Mc=_pose(p.hand_eye), wMo=_pose(p.target_pose),
         q0=p.start_joints, damping=p.damping, singular_threshold=p.singular_threshold,
@@ -243,18 +256,37 @@ class ArmSimCore:
         """
         Return the joint configuration of the 'start' or 'desired' pose, by IK.
 
-        From the current parameters; raises ParameterError if the IK does not converge.
+        From the current parameters; raises ParameterError if the IK does not converge or
+        the camera would be inside the target (no camera can be there).
         """
         p = self.params
         if which == 'start' and p.start_mode == 'joints':
-            return np.asarray(p.start_joints, dtype=float)
-        cMo = p.desired_cMo if which == 'desired' else p.start_cMo
-        seed = p.start_joints if which == 'desired' else self.named('desired')
-        q, ok, err = self.arm.ik_for_cMo(_pose(cMo), seed)
-        if not ok:
-            raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '
-                                 f'(IK residual {err:.3g}); change it or target_pose')
+            q = np.asarray(p.start_joints, dtype=float)
+            what = f'start_joints={list(p.start_joints)}'
+        else:
+            cMo = p.desired_cMo if which == 'desired' else p.start_cMo
+            seed = p.start_joints if which == 'desired' else self.named('desired')
+            q, ok, err = self.arm.ik_for_cMo(_pose(cMo), seed)
+            if not ok:
+                raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '
+                                     f'(IK residual {err:.3g}); change it or target_pose')
+            what = f'{which}_cMo={list(cMo)}'
+        depth = self._inside_target(q)
+        if depth <= 1.0:
+            raise ParameterError(f'{what} puts the camera inside the target (at {depth:.3g} of '
+                                 'its size from its centre): no camera can be there')
         return q
+
+    def _inside_target(self, q) -> float:
+        """
+        Return where the camera is at ``q``, relative to the target's surface (≤ 1: inside).
+
+        ``‖oc / axes‖`` with ``oc`` the camera centre in the target frame and ``axes`` the
+        body's semi-axes (a sphere's radius on each): 1 on the surface.
+        """
+        axes = (np.full(3, self.target.radius) if self.target.axes is None
+                else np.asarray(self.target.axes, dtype=float))
+        return float(np.linalg.norm(self.arm.oMc(q).translation / axes))
 
     # --- command and time -----------------------------------------------------------
     def on_command(self, v_c, frame_id: str = CAMERA_FRAME,
@@ -290,16 +322,17 @@ class ArmSimCore:
 
         Held (:meth:`hold`); another frame (:func:`frame_refusal`); or out
         of sequence: each publisher numbers its messages, so a number not above the last
-        executed command's, while that command is fresh (within ``cmd_timeout``), comes
-        from a second publisher. Once the last command is older (its driver stopped), or
-        one publisher is left (:meth:`on_command_publishers`), any publisher may drive.
+        executed command's, while that command is fresh (``ArmModel.fresh``: the watchdog
+        would still run it, ⌊cmd_timeout/dt⌋ periods after it), comes from a second
+        publisher (or the same one restarted). Once the last command is older (its driver
+        stopped), or one publisher is left (:meth:`on_command_publishers`), any may drive.
         """
         if self.held:
             return HELD
         reason = frame_refusal(frame_id)
         if reason or seq is None or self._last_seq is None:
             return reason
-        if seq <= self._last_seq and self.arm.t - self._seq_t <= self.params.cmd_timeout:
+        if seq <= self._last_seq and self.arm.fresh(self._seq_t):
             names = ', '.join(self.command_publishers) or 'unknown'
             return (f'a command out of sequence (number {seq} after {self._last_seq}): from '
                     f'a second publisher (publishers: {names}); one driver at a time')
@@ -401,7 +434,8 @@ class ArmSimCore:
         """
         Jump to the 'start' or 'desired' configuration of the current parameters.
 
-        Refused while a servo is enabled, or when the IK does not reach the pose.
+        Refused while a servo is enabled, when the IK does not reach the pose, or when it
+        puts the camera inside the target.
         """
         if self.servo_enabled:
             return Jump(False, SERVO_ENABLED)
@@ -420,5 +454,8 @@ class ArmSimCore:
     def release(self) -> Jump:
         """Release the hold: commands are executed again (the next one moves the arm)."""
         was, self.held = self.held, False
+        if self.arm.error is not None:  # the hold is gone, but commands are still refused
+            return Jump(True, f'{"released" if was else "not held"}, but the arm is in '
+                        f'error ({self.arm.error}): commands are refused until ~/reset')
         return Jump(True, 'released: commands are executed again' if was else
                     'not held: nothing to release')

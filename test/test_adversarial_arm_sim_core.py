@@ -1,0 +1,256 @@
+"""
+Adversarial inputs to the arm simulator's core (``pipeline/arm_sim.py``) and the loop.
+
+The watchdog and the one-driver rule at their boundary (exactly ⌊cmd_timeout/dt⌋ periods,
+at rates whose periods do not sum exactly in floats), a publisher restarting (its sequence
+numbers start again at 1) against a second one, hold/release/reset/jump races with the
+servo enabled, poses with the camera inside the target, and the headless loop's own
+arguments. Expected counts are computed in exact fractions, not with the code's floats.
+
+Found here: the one-driver window ended a period before the watchdog's (6 × 1/30 s > 0.2 s
+in floats: a restarted driver was refused 5 times, not 6); a start or desired pose with the
+camera inside the sphere was accepted (and rendered); ``release`` said "commands are
+executed again" with the arm in error; ``closed_loop`` ran 2000 iterations of nothing at
+``dt = 0`` and reversed every twist at ``dt < 0`` ("target lost"); a twist the arm
+refuses escaped the loop as an exception, which the study took for a start where the
+target is not observable.
+"""
+from __future__ import annotations
+
+from fractions import Fraction
+import math
+
+import numpy as np
+import pytest
+from sphere_servo.core.targets import make_target
+from sphere_servo.experiments.arm_cell import run_arm
+from sphere_servo.pipeline.arm_sim import ArmSimCore, HELD, SERVO_ENABLED
+from sphere_servo.pipeline.params import ArmSimParams, ParameterError
+from sphere_servo.sim.arm import pose_from_xyz_rpy, Status
+from sphere_servo.sim.loop import run_loop
+from sphere_servo.sim.plants import LoopOutcome
+
+SCENE = {'hand_eye': [0.0, -0.04, 0.02, 0.0, 0.0, 0.0], 'velocity_scale': 0.5,
+         'markers_rate': 0.0,
+         'camera': {'width': 64, 'height': 48, 'px': 60.0, 'py': 60.0, 'u0': 32.0, 'v0': 24.0}}
+MOVE = [0.0, 0.0, 0.01, 0.0, 0.0, 0.02]
+CMO_START = pose_from_xyz_rpy([0.07, 0.12, 0.56], [-0.46, 0.40, -0.72])
+CMO_DESIRED = pose_from_xyz_rpy([0.0, 0.0, 0.45], [0.0, 0.0, 0.0])
+
+
+def core(**over) -> ArmSimCore:
+    return ArmSimCore(ArmSimParams.from_mapping({**SCENE, 'clock_mode': 'lockstep', **over}))
+
+
+def periods_within(rate, timeout) -> int:
+    """⌊cmd_timeout / dt⌋ in exact arithmetic (``timeout`` as written in decimal)."""
+    return math.floor(Fraction(str(timeout)) * Fraction(str(rate)))
+
+
+# rates and timeouts whose ratio is a whole number of periods: the boundary itself
+BOUNDARY = [(30, 0.2), (30, 0.1), (30, 0.5), (50, 0.2), (25, 0.2), (60, 0.05), (40, 0.15),
+            (7, 0.0), (30, 0.0), (10, 0.25), (3, 1.0)]
+
+
+@pytest.mark.parametrize('rate,timeout', BOUNDARY)
+def test_the_watchdog_runs_a_command_floor_timeout_over_dt_plus_one_ticks(rate, timeout):
+    sim = ArmSimCore(ArmSimParams.from_mapping({**SCENE, 'camera_rate': rate,
+                                                'cmd_timeout': timeout}))   # realtime
+    sim.on_tick()
+    assert sim.on_command(MOVE).valid
+    moving = 0
+    for _ in range(periods_within(rate, timeout) + 5):
+        f = sim.on_tick()
+        if not np.any(f.qdot):
+            break
+        moving += 1
+    assert moving == periods_within(rate, timeout) + 1 == sim.arm.watchdog_steps(sim.dt)
+    assert f.info.status is Status.TIMEOUT and f.level.name == 'WARN'
+
+
+@pytest.mark.parametrize('rate,timeout', BOUNDARY)
+def test_a_restarted_driver_is_refused_while_its_old_command_would_still_run(rate, timeout):
+    """
+    Numbers from 1 again after 40: refused for ⌊cmd_timeout/dt⌋ periods, then it drives.
+
+    The refusal window is the watchdog's (the old command would still run), each refused
+    command passes a period with the arm still; it used to end one period early where the
+    periods' float sum passes the timeout (30 Hz, 0.2 s: 5 refusals, not 6).
+    """
+    sim = core(camera_rate=rate, cmd_timeout=timeout)
+    for seq in range(1, 41):
+        assert sim.on_command(MOVE, seq=seq).valid
+    refused, seq = 0, 1
+    q = sim.frame().q
+    while True:
+        out = sim.on_command(MOVE, seq=seq)
+        if out.valid:
+            break
+        assert 'out of sequence (number' in out.reason and 'one driver at a time' in out.reason
+        np.testing.assert_array_equal(out.frame.q, q)           # held still
+        assert out.frame.level.name == 'WARN' and out.frame.command_error == out.reason
+        refused, seq = refused + 1, seq + 1
+        assert refused < 1000
+    assert refused == periods_within(rate, timeout)
+    assert np.any(out.frame.qdot)                            # the restarted driver drives
+    assert sim.on_command(MOVE, seq=seq + 1).valid
+
+
+def test_a_driver_restart_is_accepted_at_once_when_it_is_the_only_publisher():
+    sim = core()
+    for seq in range(1, 11):
+        sim.on_command(MOVE, seq=seq)
+    assert not sim.on_command(MOVE, seq=1).valid              # the old one may still be there
+    sim.on_command_publishers(['/servo'])                      # the graph: one publisher left
+    assert sim.on_command(MOVE, seq=2).valid
+    sim.on_command_publishers(['/servo', '/teleop'])
+    assert not sim.on_command(MOVE, seq=1).valid              # a second one, while it drives
+
+
+def test_a_second_publisher_with_higher_numbers_takes_over_a_limit():
+    """
+    Limit (pinned): sequence numbers tell publishers apart only by their order.
+
+    A second publisher whose count is ahead of the driver's is taken for the driver, and
+    the first is then refused; the graph check (``command_publishers``, a warning) is what
+    says there are two.
+    """
+    sim = core()
+    for seq in range(1, 6):
+        assert sim.on_command(MOVE, seq=seq).valid
+    assert sim.on_command([0.0, 0.0, -0.01, 0.0, 0.0, 0.0], seq=500).valid
+    assert not sim.on_command(MOVE, seq=6).valid
+    sim.on_command_publishers(['/servo', '/teleop'])
+    f = sim.on_command(MOVE, seq=7).frame
+    assert f.status_values()['command_publishers'] == '/servo,/teleop'
+    assert f.level.name == 'WARN'
+
+
+@pytest.mark.parametrize('frame_id', ['/camera_optical_frame', 'camera_optical_frame ',
+                                      'CAMERA_OPTICAL_FRAME', 'camera_optical_frame\x00',
+                                      'arm/camera_optical_frame', 'camera_link', ' '])
+def test_a_twist_in_a_frame_that_only_looks_like_the_camera_s_is_refused(frame_id):
+    sim = core()
+    q = sim.on_command(MOVE).frame.q
+    out = sim.on_command(MOVE, frame_id)
+    assert not out.valid and repr(frame_id) in out.reason
+    np.testing.assert_array_equal(out.frame.q, q)
+    assert not np.any(out.frame.qdot)
+
+
+# --- hold, release, reset and jumps, with and without the servo ------------------------------
+def test_hold_with_the_servo_enabled_latches_and_only_a_reset_without_it_clears():
+    sim = core()
+    sim.on_servo_enabled(True)
+    sim.on_command(MOVE, seq=1)
+    assert sim.hold().success                       # hold is never refused: it stops the arm
+    out = sim.on_command(MOVE, seq=2)
+    assert not out.valid and out.reason == HELD and not np.any(out.frame.qdot)
+    assert out.frame.status_values()['hold'] == HELD
+    t, q = sim.frame().t, sim.frame().q
+    for jump in (sim.reset, lambda: sim.go('start'), lambda: sim.go('desired')):
+        j = jump()
+        assert not j.success and j.message == SERVO_ENABLED and j.frame is None
+    assert sim.held and sim.frame().t == t                # nothing passed, nothing moved
+    np.testing.assert_array_equal(sim.frame().q, q)
+    sim.on_servo_enabled(False)
+    assert sim.reset().success and not sim.held
+    assert sim.on_command(MOVE, seq=1).valid              # the hold and the sequence cleared
+
+
+def test_a_jump_while_held_keeps_the_hold():
+    sim = core()
+    sim.hold()
+    j = sim.go('desired')
+    assert j.success and sim.held
+    assert not sim.on_command(MOVE).valid
+    assert sim.release().message == 'released: commands are executed again'
+    assert sim.release().message == 'not held: nothing to release'
+    assert sim.on_command(MOVE).valid
+
+
+def test_release_does_not_claim_commands_run_while_the_arm_is_in_error():
+    sim = core()
+    sim.on_command(MOVE)
+    sim.hold()
+    q = sim.arm.q.copy()
+    q[2] = sim.arm.upper[2] + 1e-6                  # a state a bug could leave
+    sim.arm.q = q
+    assert sim.on_tick().info.status is Status.ERROR
+    msg = sim.release().message
+    assert msg.startswith('released, but the arm is in error') and '~/reset' in msg
+    out = sim.on_command(MOVE)
+    assert not out.valid and 'reset' in out.reason and out.frame.level.name == 'ERROR'
+    assert sim.reset().success
+    assert sim.on_command(MOVE).valid
+
+
+# --- poses no camera can have -------------------------------------------------------------
+@pytest.mark.parametrize('which', ['start_cMo', 'desired_cMo'])
+@pytest.mark.parametrize('xyz', [[0.0, 0.0, 0.0], [0.0, 0.0, 0.01], [0.03, -0.02, 0.03],
+                                 [0.0, 0.0, 0.0499]])
+def test_a_pose_with_the_camera_inside_the_sphere_is_refused(which, xyz):
+    pose = xyz + [0.0, 0.0, 0.0]
+    with pytest.raises(ParameterError, match=f'{which}=.*inside the target'):
+        core(**{which: pose})
+    sim = core()
+    before = sim.frame()
+    sim.params = sim.params.replace({which: pose})          # a runtime change, then the jump
+    j = sim.go('start' if which == 'start_cMo' else 'desired')
+    assert not j.success and 'inside the target' in j.message and j.frame is None
+    np.testing.assert_array_equal(sim.frame().q, before.q)
+
+
+def test_the_balloon_s_own_shape_decides_not_its_equal_volume_sphere():
+    # semi-axes 6 × 5.5 × 4.5 cm; the sphere of equal volume has r ≈ 5.2 cm: 5.7 cm along
+    # the target's x is inside the balloon, outside that sphere
+    balloon = {'target': {'kind': 'balloon', 'axes': [0.06, 0.055, 0.045]}}
+    sim = core(**balloon)
+    inside = pose_from_xyz_rpy([0.057, 0.0, 0.0], [0.0, 0.0, 0.0])       # oMc
+    assert inside.translation[0] > sim.target.radius
+    q, ok, _ = sim.arm.solve_ik(sim.arm.wMo * inside, sim.arm.q)
+    assert ok
+    with pytest.raises(ParameterError, match='start_joints=.*inside the target'):
+        core(**balloon, start_mode='joints', start_joints=q.tolist())
+    outside = pose_from_xyz_rpy([0.0, 0.0, 0.047], [0.0, 0.0, 0.0]).inverse()   # cMo
+    sim.params = sim.params.replace({'start_cMo': list(outside.translation) + [0, 0, 0]})
+    assert sim.go('start').success                  # 2 mm above its 4.5 cm semi-axis
+
+
+@pytest.mark.parametrize('cMo', [[0.0, 0.0, -0.45, 0.0, 0.0, 0.0],     # behind the camera
+                                 [0.3, 0.0, 0.4, 0.0, 0.0, 0.0]])      # out of the view
+def test_a_start_where_the_camera_does_not_see_the_target_is_a_pose_not_an_error(cMo):
+    sim = core(start_cMo=cMo)
+    f = sim.frame()
+    np.testing.assert_allclose(f.oMc.inverse().translation, cMo[:3], atol=1e-5)
+    assert not f.render_error and f.level.name == 'OK'
+
+
+def test_a_start_configuration_past_the_urdf_limits_is_a_parameter_error():
+    q = [0.0, -1.57, 3.5, -1.57, -1.57, 0.0]        # within the parameter's ±2π
+    for mode in ('joints', 'pose'):                 # in 'pose' it is the IK's seed
+        with pytest.raises(ParameterError, match=r'start_joints=.*elbow_joint = 3\.5 not in'):
+            core(start_mode=mode, start_joints=q)
+
+
+# --- the headless loop's arguments and the arm plant ---------------------------------------
+@pytest.mark.parametrize('kw', [{'dt': 0.0}, {'dt': -0.1}, {'dt': float('nan')},
+                                {'dt': float('inf')}, {'dt': '0.1'}, {'max_iter': 0},
+                                {'max_iter': -5}, {'max_iter': 1.5}, {'max_iter': True},
+                                {'max_lost': -1}])
+def test_the_loop_refuses_a_period_or_a_budget_that_runs_nothing(kw):
+    name = next(iter(kw))
+    with pytest.raises(ValueError, match=name):
+        run_loop(make_target('special', 0.05), CMO_START, CMO_DESIRED, **kw)
+
+
+def test_a_twist_the_arm_refuses_ends_the_run_with_its_reason_not_an_exception():
+    """A gain of 1e3 asks the UR5 for 353 m/s: the run ends, the records stay aligned."""
+    res = run_arm(make_target('special', 0.05), CMO_START, CMO_DESIRED, gain=1e3,
+                  max_iter=50)
+    assert res.outcome is LoopOutcome.TARGET_LOST
+    assert res.detail.startswith('the arm refused the twist: ‖v‖ of the camera twist')
+    assert res.iterations == 1 and np.linalg.norm(res.v[-1][:3]) > 100
+    assert len(res.joints) == len(res.oMc) == res.iterations + 1
+    np.testing.assert_array_equal(res.joints[-1], res.joints[0])     # nothing integrated
+    assert res.arm_status == [Status.OK]
