@@ -233,6 +233,37 @@ def test_a_start_configuration_past_the_urdf_limits_is_a_parameter_error():
             core(start_mode=mode, start_joints=q)
 
 
+def test_a_jump_reports_the_new_configuration_s_status_not_the_last_step_s():
+    """It reported 'wrist_3_joint at position limit' (WARN) at the desired pose, at rest."""
+    q0 = [0.0, -1.57, 1.57, -1.57, -1.57, 2 * np.pi - 0.05]
+    sim = core(start_mode='joints', start_joints=q0)
+    v = 0.8 * sim.arm.camera_jacobian()[:, 5]            # turns wrist_3 onto its limit
+    for _ in range(4):
+        f = sim.on_command(v).frame
+    assert f.info.status is Status.JOINT_LIMIT
+    j = sim.go('desired').frame
+    assert j.info.status is Status.OK and j.level.name == 'OK' and not j.info.joints
+    sv = np.linalg.svd(sim.arm.camera_jacobian(j.q), compute_uv=False)[-1]
+    assert j.status_values()['sigma_min'] == f'{sv:.5f}'
+    assert not np.any(j.qdot) and not np.any(j.info.qdot)
+
+
+@pytest.mark.parametrize('mode', ['joints', 'pose'])
+def test_a_runtime_start_joints_past_the_urdf_limits_makes_the_jumps_refuse(mode):
+    """It used to raise ValueError out of go_start and go_desired (the guard's last resort)."""
+    sim = core()
+    before = sim.frame()
+    sim.params = sim.params.replace({'start_mode': mode,
+                                     'start_joints': [0.0, -1.57, -4.0, -1.57, -1.57, 0.0]})
+    for which in ('start', 'desired'):
+        j = sim.go(which)
+        assert not j.success and j.frame is None
+        assert 'start_joints is outside the joint position limits: elbow_joint = -4' in j.message
+    np.testing.assert_array_equal(sim.frame().q, before.q)
+    assert sim.frame().t == before.t
+    assert sim.reset().success                      # the start taken at start-up
+
+
 # --- the headless loop's arguments and the arm plant ---------------------------------------
 @pytest.mark.parametrize('kw', [{'dt': 0.0}, {'dt': -0.1}, {'dt': float('nan')},
                                 {'dt': float('inf')}, {'dt': '0.1'}, {'max_iter': 0},

@@ -260,12 +260,15 @@ class ArmSimCore:
         the camera would be inside the target (no camera can be there).
         """
         p = self.params
+        try:  # a runtime start_joints within the parameter's ±2π, past the URDF's limits
+            joints = self.arm.check_q(p.start_joints, 'start_joints')
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
         if which == 'start' and p.start_mode == 'joints':
-            q = np.asarray(p.start_joints, dtype=float)
-            what = f'start_joints={list(p.start_joints)}'
+            q, what = joints, f'start_joints={list(p.start_joints)}'
         else:
             cMo = p.desired_cMo if which == 'desired' else p.start_cMo
-            seed = p.start_joints if which == 'desired' else self.named('desired')
+            seed = joints if which == 'desired' else self.named('desired')
             q, ok, err = self.arm.ik_for_cMo(_pose(cMo), seed)
             if not ok:
                 raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '

@@ -60,8 +60,7 @@ from sphere_servo.sim.ur5 import (find_ur5_urdf, pose_from_xyz_rpy,  # noqa: F40
                                   pose_to_xyz_rpy, URDF_ENV, URDF_REL)
 
 CAMERA_FRAME = 'camera_optical_frame'
-#: absolute bounds on a commanded camera twist: 10× the fastest industrial (delta) robots'
-#: ~10 m/s, 100× a UR5's rated 1 m/s tool speed; ω: 10× the sum of six 3.2 rad/s joints
+#: absolute twist bounds: 10× the fastest (delta) robots' ~10 m/s; 10× six 3.2 rad/s joints
 MAX_LINEAR_SPEED = 100.0    # m/s
 MAX_ANGULAR_SPEED = 200.0   # rad/s
 #: a twist is refused beyond this many times the fastest motion the arm itself can make
@@ -180,12 +179,13 @@ class ArmModel:
         self.reach_speed = self._reach_speed()
         self.twist_limit = (min(MAX_LINEAR_SPEED, TWIST_FACTOR * self.reach_speed[0]),
                             min(MAX_ANGULAR_SPEED, TWIST_FACTOR * self.reach_speed[1]))
-        self.q_start = self._check_q(pin.neutral(self.model) if q0 is None else q0, 'q0')
+        self.q_start = self.check_q(pin.neutral(self.model) if q0 is None else q0, 'q0')
         self.named: dict[str, np.ndarray] = {'start': self.q_start.copy()}
         self.reset()
 
     # --- state ----------------------------------------------------------------------
-    def _check_q(self, q, what='q') -> np.ndarray:
+    def check_q(self, q, what='q') -> np.ndarray:
+        """Return ``q`` as an (nq,) array, or ValueError: not finite, or past a limit."""
         q = np.asarray(q, dtype=float).ravel()
         if q.shape != (self.model.nq,):
             raise ValueError(f'{what} must have {self.model.nq} joint values '
@@ -230,7 +230,7 @@ class ArmModel:
 
     def reset(self, q=None) -> None:
         """Back to the start configuration (or ``q``), at rest, time 0, no command, no error."""
-        self.q = self._check_q(self.q_start if q is None else q)
+        self.q = self.check_q(self.q_start if q is None else q)
         self.qdot = np.zeros(self.model.nv)
         self.t = 0.0
         self._cmd = np.zeros(6)
@@ -239,9 +239,11 @@ class ArmModel:
         self.info = StepInfo(qdot=self.qdot.copy())
 
     def set_q(self, q) -> None:
-        """Jump to a joint configuration (at rest; keeps time and watchdog state)."""
-        self.q = self._check_q(q)
+        """Jump to a joint configuration: at rest, its own status (an error stays), time kept."""
+        self.q = self.check_q(q)
         self.qdot = np.zeros(self.model.nv)
+        self.info = (self._error_info() if self.error is not None else
+                     StepInfo(qdot=self.qdot.copy(), sigma_min=self.sigma_min()))
 
     # --- kinematics -----------------------------------------------------------------
     def wMc(self, q=None) -> pin.SE3:
@@ -471,7 +473,7 @@ class ArmModel:
         (current q by default), kept within the position limits. Returns
         ``(q, converged, error_norm)``.
         """
-        q = self.q.copy() if q_seed is None else self._check_q(q_seed, 'q_seed')
+        q = self.q.copy() if q_seed is None else self.check_q(q_seed, 'q_seed')
         err = np.inf
         for _ in range(max_iter):
             e = np.array(pin.log6(self.wMc(q).inverse() * wMc_des).vector)
