@@ -28,6 +28,7 @@ from sphere_servo.pipeline.arm_sim import ArmSimCore, HELD, SERVO_ENABLED
 from sphere_servo.pipeline.params import ArmSimParams, ParameterError
 from sphere_servo.sim.arm import pose_from_xyz_rpy, Status
 from sphere_servo.sim.loop import run_loop
+from sphere_servo.sim.observers import exact_observer
 from sphere_servo.sim.plants import LoopOutcome
 
 SCENE = {'hand_eye': [0.0, -0.04, 0.02, 0.0, 0.0, 0.0], 'velocity_scale': 0.5,
@@ -285,3 +286,22 @@ def test_a_twist_the_arm_refuses_ends_the_run_with_its_reason_not_an_exception()
     assert len(res.joints) == len(res.oMc) == res.iterations + 1
     np.testing.assert_array_equal(res.joints[-1], res.joints[0])     # nothing integrated
     assert res.arm_status == [Status.OK]
+
+
+@pytest.mark.parametrize('kw', [{'pixel_noise': float('nan')}, {'pixel_noise': -1.0},
+                                {'pixel_noise': float('inf')}, {'pixel_noise': '1'},
+                                {'pixel_noise': 1.0, 'contour_points': 4},
+                                {'pixel_noise': 1.0, 'contour_points': 0},
+                                {'contour_points': 64.0}])
+def test_the_exact_observer_refuses_a_noise_it_would_not_apply(kw):
+    with pytest.raises(ValueError, match=list(kw)[-1]):
+        exact_observer(make_target('special', 0.05), **kw)
+
+
+def test_the_exact_observer_at_its_smallest_fit_and_without_noise():
+    target = make_target('special', 0.05)
+    exact = exact_observer(target)(CMO_DESIRED)
+    cO = CMO_DESIRED.translation             # ground truth: b = O/‖O‖, r_δ = r/‖O‖
+    np.testing.assert_allclose(exact.sphere.b, cO / np.linalg.norm(cO), atol=1e-12)
+    noisy = exact_observer(target, pixel_noise=1e-6, contour_points=5)(CMO_DESIRED)
+    np.testing.assert_allclose(noisy.sphere.b, exact.sphere.b, atol=1e-6)
