@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from sphere_servo.core.targets import make_target
 from sphere_servo.experiments.arm_cell import run_arm
-from sphere_servo.pipeline.arm_sim import ArmSimCore, HELD, SERVO_ENABLED
+from sphere_servo.pipeline.arm_sim import ArmSimCore, HELD, SEQ_UNSUPPORTED, SERVO_ENABLED
 from sphere_servo.pipeline.params import ArmSimParams, ParameterError
 from sphere_servo.sim.arm import pose_from_xyz_rpy, Status
 from sphere_servo.sim.loop import run_loop
@@ -305,3 +305,20 @@ def test_the_exact_observer_at_its_smallest_fit_and_without_noise():
     np.testing.assert_allclose(exact.sphere.b, cO / np.linalg.norm(cO), atol=1e-12)
     noisy = exact_observer(target, pixel_noise=1e-6, contour_points=5)(CMO_DESIRED)
     np.testing.assert_allclose(noisy.sphere.b, exact.sphere.b, atol=1e-6)
+
+
+def test_an_rmw_without_sequence_numbers_does_not_stall_the_driver():
+    """
+    Every message numbered UINT64_MAX (rmw's "unsupported") tells no publishers apart.
+
+    All were refused but the first while it was fresh (in lockstep: the arm held still 6
+    periods in 7), and one a second after the graph check; now they are unknown numbers.
+    """
+    sim = core()
+    unsupported = 2 ** 64 - 1
+    assert SEQ_UNSUPPORTED == unsupported              # rmw/types.h: UINT64_MAX
+    for _ in range(10):
+        out = sim.on_command(MOVE, seq=unsupported)
+        assert out.valid and np.any(out.frame.qdot), out.reason
+    assert sim.on_command(MOVE, seq=3).valid           # a numbering RMW again: it drives
+    assert not sim.on_command(MOVE, seq=2).valid

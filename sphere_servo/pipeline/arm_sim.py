@@ -59,6 +59,9 @@ from sphere_servo.sim.scene import CameraPath, MarkerSpec, Scene, SceneError
 from sphere_servo.vision.renderer import Renderer
 
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
+#: the sequence number of an RMW that has none (rmw's RMW_MESSAGE_INFO_SEQUENCE_NUMBER_
+#: UNSUPPORTED): every message the same, so it tells nothing (it refused all but one a second)
+SEQ_UNSUPPORTED = 2 ** 64 - 1
 PATH_POINTS = 500  # the camera path's markers keep at most this many points
 HELD = 'held: commands are refused until ~/release or ~/reset'
 SERVO_ENABLED = ('refused: the servo is enabled (servo/enabled): disable it first '
@@ -301,9 +304,11 @@ class ArmSimCore:
         physical bound, or any in its error state) is not executed and stops the arm at
         once; in lockstep the period passes all the same with the arm held still, so the
         loop gets its image.
-        ``seq``: the publisher's sequence number of the message (None: unknown).
+        ``seq``: the publisher's sequence number of the message (None or
+        :data:`SEQ_UNSUPPORTED`: unknown, the one-driver rule is then the graph's warning).
         """
         v_c = np.asarray(v_c, dtype=float)
+        seq = None if seq == SEQ_UNSUPPORTED else seq
         reason = self.refusal(frame_id, seq)
         if reason:
             self.arm.stop()
