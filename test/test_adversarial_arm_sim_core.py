@@ -227,6 +227,25 @@ def test_a_start_where_the_camera_does_not_see_the_target_is_a_pose_not_an_error
     assert not f.render_error and f.level.name == 'OK'
 
 
+def test_a_twist_into_the_target_is_executed_a_limit():
+    """
+    Limit (pinned): the simulator has no collision model.
+
+    A jump into the target is refused (above), but a twist that drives the camera into
+    the sphere is executed like any other: the status stays ``ok``.
+    """
+    sim = core()
+    sim.go('desired')                           # 0.45 m above the sphere's centre
+    toward = [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]      # +z: the optical axis, at the centre
+    for _ in range(200):
+        f = sim.on_command(toward).frame
+        depth = np.linalg.norm(f.oMc.translation) / sim.target.radius
+        if depth < 0.9:
+            break
+    assert depth < 0.9, (depth, f.info.status)
+    assert f.info.status is Status.OK and not f.command_error
+
+
 def test_a_start_configuration_past_the_urdf_limits_is_a_parameter_error():
     q = [0.0, -1.57, 3.5, -1.57, -1.57, 0.0]        # within the parameter's ±2π
     for mode in ('joints', 'pose'):                 # in 'pose' it is the IK's seed
