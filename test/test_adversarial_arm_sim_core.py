@@ -164,6 +164,8 @@ def test_a_jump_while_held_keeps_the_hold():
     sim.hold()
     j = sim.go('desired')
     assert j.success and sim.held
+    assert j.message.startswith('at desired (held: commands are refused until ~/release): ')
+    assert float(j.message.rsplit(' ', 1)[-1]) == pytest.approx(j.frame.t, abs=1e-9)
     assert not sim.on_command(MOVE).valid
     assert sim.release().message == 'released: commands are executed again'
     assert sim.release().message == 'not held: nothing to release'
@@ -180,6 +182,9 @@ def test_release_does_not_claim_commands_run_while_the_arm_is_in_error():
     assert sim.on_tick().info.status is Status.ERROR
     msg = sim.release().message
     assert msg.startswith('released, but the arm is in error') and '~/reset' in msg
+    j = sim.go('desired')                  # a jump moves it, and says the error stays
+    assert j.success and '(the arm is in error: commands are refused until ~/reset)' in j.message
+    assert j.frame.level.name == 'ERROR' and j.frame.info.status is Status.ERROR
     out = sim.on_command(MOVE)
     assert not out.valid and 'reset' in out.reason and out.frame.level.name == 'ERROR'
     assert sim.reset().success

@@ -420,9 +420,13 @@ class ArmSimCore:
         self.waiting = self.lockstep
         self._step_error = ''
         frame = self.frame()
+        # a jump moves the arm but clears neither the error nor the hold: say so
+        note = (' (the arm is in error: commands are refused until ~/reset)'
+                if self.arm.error is not None else
+                ' (held: commands are refused until ~/release)' if self.held else '')
         # the stamp ends the reply, so a caller knows which images show the new pose
-        return Jump(True, f'at {what}: q={np.round(q, 4).tolist()}, first image stamped '
-                    f'{frame.t:.9f}', frame)
+        return Jump(True, f'at {what}{note}: q={np.round(q, 4).tolist()}, first image '
+                    f'stamped {frame.t:.9f}', frame)
 
     def reset(self) -> Jump:
         """
