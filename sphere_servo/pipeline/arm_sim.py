@@ -59,6 +59,9 @@ from sphere_servo.sim.scene import CameraPath, MarkerSpec, Scene, SceneError
 from sphere_servo.vision.renderer import Renderer
 
 START_TIME = 1.0  # s; stamp 0 means "unset" to many ROS tools
+#: the sequence number of an RMW that has none (rmw's RMW_MESSAGE_INFO_SEQUENCE_NUMBER_
+#: UNSUPPORTED): every message the same, so it tells nothing (it refused all but one a second)
+SEQ_UNSUPPORTED = 2 ** 64 - 1
 PATH_POINTS = 500  # the camera path's markers keep at most this many points
 HELD = 'held: commands are refused until ~/release or ~/reset'
 SERVO_ENABLED = ('refused: the servo is enabled (servo/enabled): disable it first '
@@ -185,7 +188,20 @@ def _pose(xyz_rpy) -> pin.SE3:
 
 
 def sim_arm(p: ArmSimParams) -> ArmModel:
-    """Return the simulated UR5: its URDF, hand-eye transform, target pose, limits, watchdog."""
+    """
+    Return the simulated UR5: its URDF, hand-eye transform, target pose, limits, watchdog.
+
+    ParameterError when the arm refuses them (``start_joints`` outside the URDF's joint
+    limits: the elbow's are ±π, the parameter's bounds ±2π).
+    """
+    try:
+        return _arm(p)
+    except ValueError as exc:
+        raise ParameterError(f'start_joints={list(p.start_joints)} or the arm parameters '
+                             f'refused by the UR5 model: {exc}') from exc
+
+
+def _arm(p: ArmSimParams) -> ArmModel:
     return ArmModel(
         urdf_path=p.urdf_path or None, tool0Mc=_pose(p.hand_eye), wMo=_pose(p.target_pose),
         q0=p.start_joints, damping=p.damping, singular_threshold=p.singular_threshold,
@@ -243,18 +259,40 @@ class ArmSimCore:
         """
         Return the joint configuration of the 'start' or 'desired' pose, by IK.
 
-        From the current parameters; raises ParameterError if the IK does not converge.
+        From the current parameters; raises ParameterError if the IK does not converge or
+        the camera would be inside the target (no camera can be there).
         """
         p = self.params
+        try:  # a runtime start_joints within the parameter's ±2π, past the URDF's limits
+            joints = self.arm.check_q(p.start_joints, 'start_joints')
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
         if which == 'start' and p.start_mode == 'joints':
-            return np.asarray(p.start_joints, dtype=float)
-        cMo = p.desired_cMo if which == 'desired' else p.start_cMo
-        seed = p.start_joints if which == 'desired' else self.named('desired')
-        q, ok, err = self.arm.ik_for_cMo(_pose(cMo), seed)
-        if not ok:
-            raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '
-                                 f'(IK residual {err:.3g}); change it or target_pose')
+            q, what = joints, f'start_joints={list(p.start_joints)}'
+        else:
+            cMo = p.desired_cMo if which == 'desired' else p.start_cMo
+            seed = joints if which == 'desired' else self.named('desired')
+            q, ok, err = self.arm.ik_for_cMo(_pose(cMo), seed)
+            if not ok:
+                raise ParameterError(f'no UR5 configuration reaches {which}_cMo={list(cMo)} '
+                                     f'(IK residual {err:.3g}); change it or target_pose')
+            what = f'{which}_cMo={list(cMo)}'
+        depth = self._inside_target(q)
+        if depth <= 1.0:
+            raise ParameterError(f'{what} puts the camera inside the target (at {depth:.3g} of '
+                                 'its size from its centre): no camera can be there')
         return q
+
+    def _inside_target(self, q) -> float:
+        """
+        Return where the camera is at ``q``, relative to the target's surface (≤ 1: inside).
+
+        ``‖oc / axes‖`` with ``oc`` the camera centre in the target frame and ``axes`` the
+        body's semi-axes (a sphere's radius on each): 1 on the surface.
+        """
+        axes = (np.full(3, self.target.radius) if self.target.axes is None
+                else np.asarray(self.target.axes, dtype=float))
+        return float(np.linalg.norm(self.arm.oMc(q).translation / axes))
 
     # --- command and time -----------------------------------------------------------
     def on_command(self, v_c, frame_id: str = CAMERA_FRAME,
@@ -266,9 +304,11 @@ class ArmSimCore:
         physical bound, or any in its error state) is not executed and stops the arm at
         once; in lockstep the period passes all the same with the arm held still, so the
         loop gets its image.
-        ``seq``: the publisher's sequence number of the message (None: unknown).
+        ``seq``: the publisher's sequence number of the message (None or
+        :data:`SEQ_UNSUPPORTED`: unknown, the one-driver rule is then the graph's warning).
         """
         v_c = np.asarray(v_c, dtype=float)
+        seq = None if seq == SEQ_UNSUPPORTED else seq
         reason = self.refusal(frame_id, seq)
         if reason:
             self.arm.stop()
@@ -290,16 +330,17 @@ class ArmSimCore:
 
         Held (:meth:`hold`); another frame (:func:`frame_refusal`); or out
         of sequence: each publisher numbers its messages, so a number not above the last
-        executed command's, while that command is fresh (within ``cmd_timeout``), comes
-        from a second publisher. Once the last command is older (its driver stopped), or
-        one publisher is left (:meth:`on_command_publishers`), any publisher may drive.
+        executed command's, while that command is fresh (``ArmModel.fresh``: the watchdog
+        would still run it, ⌊cmd_timeout/dt⌋ periods after it), comes from a second
+        publisher (or the same one restarted). Once the last command is older (its driver
+        stopped), or one publisher is left (:meth:`on_command_publishers`), any may drive.
         """
         if self.held:
             return HELD
         reason = frame_refusal(frame_id)
         if reason or seq is None or self._last_seq is None:
             return reason
-        if seq <= self._last_seq and self.arm.t - self._seq_t <= self.params.cmd_timeout:
+        if seq <= self._last_seq and self.arm.fresh(self._seq_t):
             names = ', '.join(self.command_publishers) or 'unknown'
             return (f'a command out of sequence (number {seq} after {self._last_seq}): from '
                     f'a second publisher (publishers: {names}); one driver at a time')
@@ -379,9 +420,13 @@ class ArmSimCore:
         self.waiting = self.lockstep
         self._step_error = ''
         frame = self.frame()
+        # a jump moves the arm but clears neither the error nor the hold: say so
+        note = (' (the arm is in error: commands are refused until ~/reset)'
+                if self.arm.error is not None else
+                ' (held: commands are refused until ~/release)' if self.held else '')
         # the stamp ends the reply, so a caller knows which images show the new pose
-        return Jump(True, f'at {what}: q={np.round(q, 4).tolist()}, first image stamped '
-                    f'{frame.t:.9f}', frame)
+        return Jump(True, f'at {what}{note}: q={np.round(q, 4).tolist()}, first image '
+                    f'stamped {frame.t:.9f}', frame)
 
     def reset(self) -> Jump:
         """
@@ -401,7 +446,8 @@ class ArmSimCore:
         """
         Jump to the 'start' or 'desired' configuration of the current parameters.
 
-        Refused while a servo is enabled, or when the IK does not reach the pose.
+        Refused while a servo is enabled, when the IK does not reach the pose, or when it
+        puts the camera inside the target.
         """
         if self.servo_enabled:
             return Jump(False, SERVO_ENABLED)
@@ -420,5 +466,8 @@ class ArmSimCore:
     def release(self) -> Jump:
         """Release the hold: commands are executed again (the next one moves the arm)."""
         was, self.held = self.held, False
+        if self.arm.error is not None:  # the hold is gone, but commands are still refused
+            return Jump(True, f'{"released" if was else "not held"}, but the arm is in '
+                        f'error ({self.arm.error}): commands are refused until ~/reset')
         return Jump(True, 'released: commands are executed again' if was else
                     'not held: nothing to release')

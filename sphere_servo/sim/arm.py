@@ -1,12 +1,9 @@
 """
 The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
 
-- Robot: the UR5 URDF of ``example-robot-data``, loaded with Pinocchio (:func:`find_ur5_urdf`
-  says where it is looked for).
-- Camera: the optical frame ``c`` (REP 103: z forward, x right, y down) is fixed on ``tool0``
-  by the hand-eye transform ``tool0Mc``. ``tool0``'s z axis is the flange's outward axis (the
-  direction from the wrist_3 joint to the flange), so the default ``tool0Mc = I`` looks out
-  of the flange.
+- Robot: the UR5 URDF of ``example-robot-data`` (:func:`find_ur5_urdf`), with Pinocchio.
+- Camera: the optical frame ``c`` (REP 103: z forward, x right, y down) on ``tool0`` by the
+  hand-eye ``tool0Mc``; ``tool0``'s z is the flange's outward axis: ``I`` looks out of it.
 - Command: a camera twist ``v_c = (v, ω)`` expressed in the *current camera frame*
   (DESIGN.md §1). It is mapped to joint velocities by damped least squares on the camera
   Jacobian ``J_c`` (``pin.LOCAL`` on the added camera frame, 6×nv), with damping that grows
@@ -16,9 +13,10 @@ The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
   1. joint position limits: a joint at a limit that the solution would drive further is
      locked and the least-squares problem is solved again without it (it may still move
      away from the limit); status ``joint_limit`` (details: the joint names);
-  2. singularity: when ``σ_min < singular_threshold`` and the motion decreases ``σ_min``,
-     the whole vector is slowed linearly down to 0 at ``singular_stop`` (MoveIt Servo's
-     approach, with ``σ_min`` in place of the condition number); status ``singularity``;
+  2. singularity: when ``σ_min < singular_threshold`` the solution is damped, so the
+     camera departs from the command (less motion along the weak directions): status
+     ``singularity``, whichever way it moves; motion that decreases ``σ_min`` is also slowed
+     linearly down to 0 at ``singular_stop`` (MoveIt Servo's rule, on ``σ_min``);
   3. joint velocity limits (URDF × ``velocity_scale``): the whole vector is scaled by one
      factor, never clipped per axis, so the camera keeps the commanded direction;
   4. a joint that would cross its limit within this step is landed exactly on it, again
@@ -27,33 +25,24 @@ The simulated UR5 with an eye-in-hand camera (pure model, no ROS).
 - Integration: ``q ← pin.integrate(model, q, q̇ dt)`` with a fixed ``dt``.
 - Watchdog: if no command arrived for more than ``cmd_timeout`` seconds of simulated time,
   ``q̇ = 0`` and status ``timeout``.
-- Refusals (:class:`TwistError`, a ``ValueError`` with a typed ``violation``): a twist that
-  is not 6 finite numbers, or faster than the physical bound ``twist_limit = (v, ω)``
-  (:meth:`ArmModel.command`), is refused *before* anything is integrated, and the arm is
-  stopped at once: zero velocity from the next step, not the previous command until the
-  watchdog. The bound is the smaller of ``MAX_LINEAR_SPEED`` / ``MAX_ANGULAR_SPEED`` (far
-  above any real arm) and ``TWIST_FACTOR`` × the fastest camera motion the arm can make at
-  its URDF joint speed limits (:attr:`ArmModel.reach_speed`); for the UR5 that is
-  ``‖v‖ ≤ 100 m/s``, ``‖ω‖ ≤ 190 rad/s``, above the servo's own saturation bounds
-  (``v_max ≤ 10 m/s``, ``w_max ≤ 100 rad/s``), so a servo within them is never refused.
-- Error state: :meth:`ArmModel.step` never integrates a non-finite state. If ``q`` or ``q̇``
-  is ever not finite, or ``q`` leaves the position limits by more than round-off
-  (``LIMIT_TOL``), the arm holds still with status ``error`` and :meth:`ArmModel.command`
-  refuses every twist (``Bound.STATE``) until :meth:`ArmModel.reset`.
-- Ground truth: ``wMc`` (camera in the world), ``cMo`` (target in the camera) with the
-  target placed at ``wMo`` in the world.
+- Refusals (:class:`TwistError`, a ``ValueError`` with a typed ``violation``): a twist not
+  6 finite numbers, or beyond the physical bound ``twist_limit = (v, ω)``, is refused
+  *before* anything is integrated and the arm stops at once (zero velocity from the next
+  step). The bound: the smaller of ``MAX_LINEAR_SPEED`` / ``MAX_ANGULAR_SPEED`` and
+  ``TWIST_FACTOR`` × the arm's fastest camera motion (:attr:`ArmModel.reach_speed`); UR5:
+  ``‖v‖ ≤ 100 m/s``, ``‖ω‖ ≤ 190.5 rad/s``, above the servo's own bounds (``v_max ≤ 10``,
+  ``w_max ≤ 100``), so a servo within them is never refused.
+- Error state: :meth:`ArmModel.step` never integrates an invalid state: a ``q`` or ``q̇``
+  not finite, or ``q`` past a limit by more than ``LIMIT_TOL``, holds the arm still with
+  status ``error``, every twist refused (``Bound.STATE``) until :meth:`ArmModel.reset`.
+- Ground truth: ``wMc`` (camera in the world), ``cMo`` (target in the camera), ``wMo``.
 
-Stopping distance. The model has no acceleration limit: the velocity of a step is the
-command's. After a refused twist the next step's velocity is zero, so the motion after the
-refusal is at most the one period already running under the previous command: per joint
-``|Δq_i| ≤ q̇max_i dt``, for the camera ``‖Δp‖ ≤ v dt`` with v the previous command's speed
-(at most ``reach_speed[0]·velocity_scale``). At 30 Hz (dt = 33.3 ms): ``Δq_i ≤ 0.107 rad``
-at the UR5's 3.2 rad/s (0.053 rad at the configs' ``velocity_scale: 0.5``); a servo
-saturated at 0.25 m/s and 1.5 rad/s moves the camera ≤ 8.3 mm and ≤ 0.05 rad. After the
-last command the watchdog stops the arm after :meth:`ArmModel.watchdog_steps` =
-``⌊cmd_timeout/dt⌋ + 1`` steps (the step whose start is more than ``cmd_timeout`` after the
-command is the first at rest): 16 steps = 0.533 s for ``cmd_timeout = 0.5`` at 30 Hz (0.133
-m at 0.25 m/s), 7 steps = 0.233 s for 0.2 s (58 mm).
+Stopping distance (numbers for the UR5: README, Safety). No acceleration limit: after a
+refused twist the next step is at rest, so the motion after it is at most the period already
+running, ``|Δq_i| ≤ q̇max_i dt``; after the last command the watchdog stops the arm after
+:meth:`ArmModel.watchdog_steps` = ``⌊cmd_timeout/dt⌋ + 1`` steps (the first step whose
+start is more than ``cmd_timeout`` after the command is at rest: 7 steps = 0.233 s for
+0.2 s at 30 Hz).
 """
 from __future__ import annotations
 
@@ -71,15 +60,15 @@ from sphere_servo.sim.ur5 import (find_ur5_urdf, pose_from_xyz_rpy,  # noqa: F40
                                   pose_to_xyz_rpy, URDF_ENV, URDF_REL)
 
 CAMERA_FRAME = 'camera_optical_frame'
-#: absolute bounds on a commanded camera twist: 10× the fastest industrial (delta) robots'
-#: ~10 m/s, 100× a UR5's rated 1 m/s tool speed; ω: 10× the sum of six 3.2 rad/s joints
+#: absolute twist bounds: 10× the fastest (delta) robots' ~10 m/s; 10× six 3.2 rad/s joints
 MAX_LINEAR_SPEED = 100.0    # m/s
 MAX_ANGULAR_SPEED = 200.0   # rad/s
 #: a twist is refused beyond this many times the fastest motion the arm itself can make
 TWIST_FACTOR = 10.0
-#: how far (rad) an integrated q may leave a position limit before the state is invalid:
-#: round-off only, since a joint that would cross a limit is landed on it (step 4)
+#: how far (rad) q may pass a limit before the state is invalid: round-off (step 4 lands)
 LIMIT_TOL = 1e-9
+#: slack (s) on ``cmd_timeout``: summed periods' round-off (6 × 1/30 s > 0.2 s in floats)
+TIME_TOL = 1e-9
 
 
 class Status(str, Enum):
@@ -190,22 +179,24 @@ class ArmModel:
         self.reach_speed = self._reach_speed()
         self.twist_limit = (min(MAX_LINEAR_SPEED, TWIST_FACTOR * self.reach_speed[0]),
                             min(MAX_ANGULAR_SPEED, TWIST_FACTOR * self.reach_speed[1]))
-        self.q_start = self._check_q(pin.neutral(self.model) if q0 is None else q0, 'q0')
+        self.q_start = self.check_q(pin.neutral(self.model) if q0 is None else q0, 'q0')
         self.named: dict[str, np.ndarray] = {'start': self.q_start.copy()}
         self.reset()
 
     # --- state ----------------------------------------------------------------------
-    def _check_q(self, q, what='q') -> np.ndarray:
+    def check_q(self, q, what='q') -> np.ndarray:
+        """Return ``q`` as an (nq,) array, or ValueError: not finite, or past a limit."""
         q = np.asarray(q, dtype=float).ravel()
         if q.shape != (self.model.nq,):
             raise ValueError(f'{what} must have {self.model.nq} joint values '
                              f'({", ".join(self.joint_names)}), got {q.size}')
         if not np.all(np.isfinite(q)):
             raise ValueError(f'{what} contains NaN or inf: {q}')
-        bad = [n for n, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper)
+        bad = [f'{n} = {v:.6g} not in [{lo:.6g}, {hi:.6g}]'
+               for n, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper)
                if not lo <= v <= hi]
         if bad:
-            raise ValueError(f'{what} is outside the joint position limits for {bad}')
+            raise ValueError(f'{what} is outside the joint position limits: {"; ".join(bad)}')
         return q.copy()
 
     def _reach_speed(self) -> tuple[float, float]:
@@ -230,16 +221,16 @@ class ArmModel:
         return v, w
 
     def watchdog_steps(self, dt: float) -> int:
-        """
-        Count the steps of ``dt`` still run under a command before the watchdog stops it.
+        """Count the steps run under a command: ⌊cmd_timeout/dt⌋ + 1 (:meth:`fresh` at start)."""
+        return int(math.floor((self.cmd_timeout + TIME_TOL) / dt)) + 1
 
-        ``⌊cmd_timeout/dt⌋ + 1``: a step runs while ``t − t_cmd ≤ cmd_timeout`` at its start.
-        """
-        return int(math.floor((self.cmd_timeout + 1e-9) / dt)) + 1
+    def fresh(self, t_cmd: float | None) -> bool:
+        """Tell whether a command taken at ``t_cmd`` still runs: ``t − t_cmd ≤ cmd_timeout``."""
+        return t_cmd is not None and self.t - t_cmd <= self.cmd_timeout + TIME_TOL
 
     def reset(self, q=None) -> None:
         """Back to the start configuration (or ``q``), at rest, time 0, no command, no error."""
-        self.q = self._check_q(self.q_start if q is None else q)
+        self.q = self.check_q(self.q_start if q is None else q)
         self.qdot = np.zeros(self.model.nv)
         self.t = 0.0
         self._cmd = np.zeros(6)
@@ -248,9 +239,11 @@ class ArmModel:
         self.info = StepInfo(qdot=self.qdot.copy())
 
     def set_q(self, q) -> None:
-        """Jump to a joint configuration (at rest; keeps time and watchdog state)."""
-        self.q = self._check_q(q)
+        """Jump to a joint configuration: at rest, its own status (an error stays), time kept."""
+        self.q = self.check_q(q)
         self.qdot = np.zeros(self.model.nv)
+        self.info = (self._error_info() if self.error is not None else
+                     StepInfo(qdot=self.qdot.copy(), sigma_min=self.sigma_min()))
 
     # --- kinematics -----------------------------------------------------------------
     def wMc(self, q=None) -> pin.SE3:
@@ -276,17 +269,27 @@ class ArmModel:
     def sigma_min(self, q=None) -> float:
         return float(np.linalg.svd(self.camera_jacobian(q), compute_uv=False)[-1])
 
-    def _dls(self, J: np.ndarray, v: np.ndarray, sigma_min: float) -> np.ndarray:
+    def _dls(self, J: np.ndarray, v: np.ndarray, sigma_min: float,
+             free: np.ndarray | None = None) -> np.ndarray:
         """
         Damped least squares ``Jᵀ(JJᵀ + λ²I)⁻¹ v`` (Nakamura–Chiaverini).
 
-        λ² = λ_max²(1 − (σ/σ₀)²) below σ₀ = singular_threshold, 0 above.
+        λ² = λ_max²(1 − (σ/σ₀)²) below σ₀ = singular_threshold, 0 above. ``free``: the
+        joints not locked at a limit; then ``(J_fᵀJ_f + λ²I)⁻¹ J_fᵀ v`` on their columns,
+        a regular matrix (``J_f J_fᵀ`` lost a rank per locked joint, and 4 digits).
         """
         lam2 = 0.0
         if sigma_min < self.singular_threshold:
             lam2 = self.damping ** 2 * (1.0 - (sigma_min / self.singular_threshold) ** 2)
-        A = J @ J.T + (lam2 + 1e-12) * np.eye(J.shape[0])
-        return J.T @ np.linalg.solve(A, v)
+        if free is None or free.all():
+            A = J @ J.T + (lam2 + 1e-12) * np.eye(J.shape[0])
+            return J.T @ np.linalg.solve(A, v)
+        qdot = np.zeros(J.shape[1])
+        if free.any():
+            Jf = J[:, free]
+            qdot[free] = np.linalg.solve(Jf.T @ Jf + (lam2 + 1e-12) * np.eye(Jf.shape[1]),
+                                         Jf.T @ v)
+        return qdot
 
     # --- command mapping ----------------------------------------------------------------
     def twist_to_qdot(self, v_c, dt: float | None = None) -> StepInfo:
@@ -309,10 +312,7 @@ class ArmModel:
         at_hi = self.q >= self.upper - self.limit_margin
         at_lo = self.q <= self.lower + self.limit_margin
         for _ in range(self.model.nv):
-            Jl = J.copy()
-            Jl[:, locked] = 0.0
-            qdot = self._dls(Jl, v_c, info.sigma_min)
-            qdot[locked] = 0.0
+            qdot = self._dls(J, v_c, info.sigma_min, ~locked)
             push = ((at_hi & (qdot > 0)) | (at_lo & (qdot < 0))) & ~locked
             if not push.any():
                 break
@@ -320,16 +320,17 @@ class ArmModel:
         if locked.any():
             info.flags.add(Status.JOINT_LIMIT)
             info.joints = [n for n, lk in zip(self.joint_names, locked) if lk]
-        # 2. singularity: slow motion that decreases σ_min
+        # 2. singularity: the solution is damped (the camera no longer follows the command
+        # exactly: always reported), and motion that decreases σ_min is slowed
         scale = 1.0
         if info.sigma_min < self.singular_threshold:
+            info.flags.add(Status.SINGULARITY)
             eps = 1e-4 / max(np.linalg.norm(qdot), 1e-9)
             s_next = self.sigma_min(pin.integrate(self.model, self.q, qdot * eps))
             if s_next < info.sigma_min:
                 ramp = ((info.sigma_min - self.singular_stop)
                         / (self.singular_threshold - self.singular_stop))
                 scale = float(np.clip(ramp, 0.0, 1.0))
-                info.flags.add(Status.SINGULARITY)
         qdot = qdot * scale
         # 3. velocity limits: one factor for the whole vector
         over = np.max(np.abs(qdot) / self.vmax)
@@ -416,7 +417,7 @@ class ArmModel:
             self._check_state(self.q, 'joint positions q')
         if self.error is not None:
             info = self._error_info()
-        elif self._cmd_time is None or self.t - self._cmd_time > self.cmd_timeout + 1e-9:
+        elif not self.fresh(self._cmd_time):
             info = StepInfo(status=Status.TIMEOUT, qdot=np.zeros(self.model.nv),
                             scale=0.0, flags={Status.TIMEOUT})
             if self._cmd_time is None:  # never commanded: idle, not a fault
@@ -472,7 +473,7 @@ class ArmModel:
         (current q by default), kept within the position limits. Returns
         ``(q, converged, error_norm)``.
         """
-        q = self.q.copy() if q_seed is None else self._check_q(q_seed, 'q_seed')
+        q = self.q.copy() if q_seed is None else self.check_q(q_seed, 'q_seed')
         err = np.inf
         for _ in range(max_iter):
             e = np.array(pin.log6(self.wMc(q).inverse() * wMc_des).vector)

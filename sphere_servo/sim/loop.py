@@ -15,6 +15,7 @@ trajectories of b and the marks; why the run ended is a :class:`LoopOutcome`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from typing import Callable, Protocol
 
 import numpy as np
@@ -156,7 +157,16 @@ def closed_loop(plant: Plant, target: Target, feature_set: FeatureSetSpec = 's_n
                  with a noisy observer — an exact one fails the same way again.
     Stops when ‖s − s*‖₂ < tol (CONVERGED), after ``max_iter`` iterations (MAX_ITER), when
     the target can no longer be observed (TARGET_LOST), or where the plant stops it.
+    ValueError, before anything runs, on a ``dt`` not finite and > 0 (0 ran ``max_iter``
+    iterations of nothing; a negative one reversed every twist, and the run ended "target
+    lost"), or a ``max_iter`` < 1 or ``max_lost`` < 0 that is not an integer.
     """
+    if not (isinstance(dt, (int, float, np.floating, np.integer)) and math.isfinite(dt)
+            and dt > 0):
+        raise ValueError(f'dt must be a finite number of seconds > 0, got {dt!r}')
+    for name, val, lo in (('max_iter', max_iter, 1), ('max_lost', max_lost, 0)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < lo:
+            raise ValueError(f'{name} must be an integer >= {lo}, got {val!r}')
     observer = observer or (lambda cMo: observe(cMo, target))
     r_hat = target.radius if r_hat is None else r_hat
     s_star = desired or observer(plant.desired_cMo())

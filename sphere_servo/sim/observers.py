@@ -55,8 +55,19 @@ def exact_observer(target: Target, camera: CameraIntrinsics | None = None,
     camera       the true intrinsics (default :class:`CameraIntrinsics`).
     camera_ctrl  the intrinsics the controller believes (default: the true ones).
     pixel_noise  σ (px) of Gaussian noise on the contour points and mark centres.
-    Raises :class:`MeasurementError` when the target is behind the camera or a mark hidden.
+    contour_points  how many contour points the noisy conic is fitted to (≥ 5, a conic's
+                 degrees of freedom).
+    ValueError at once on a ``pixel_noise`` not finite and ≥ 0 (NaN and −1 gave noise-free
+    observations, inf a "target lost") or fewer than 5 contour points (a conic through 3
+    fitted anything, 0 divided by zero); the observer raises :class:`MeasurementError`
+    when the target is behind the camera or a mark hidden.
     """
+    if not (isinstance(pixel_noise, (int, float, np.floating, np.integer))
+            and np.isfinite(pixel_noise) and pixel_noise >= 0):
+        raise ValueError(f'pixel_noise must be a finite number ≥ 0 (px), got {pixel_noise!r}')
+    if (isinstance(contour_points, bool) or not isinstance(contour_points, (int, np.integer))
+            or contour_points < 5):
+        raise ValueError(f'contour_points must be an integer ≥ 5, got {contour_points!r}')
     cam = camera or CameraIntrinsics()
     ctrl = camera_ctrl or cam
     A = ctrl.K_inv @ cam.K

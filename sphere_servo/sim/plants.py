@@ -26,7 +26,7 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.core.geometry import integrate_camera
-from sphere_servo.sim.arm import ArmModel, Status
+from sphere_servo.sim.arm import ArmModel, Status, TwistError
 
 #: the arm counts as held by a singularity when every joint moves less than this per step
 #: (100× below a slowed-down arm's motion) ...
@@ -139,11 +139,24 @@ class ArmPlant:
         return self.arm.oMc().homogeneous.copy()
 
     def step(self, v_c: np.ndarray, dt: float) -> PlantStop | None:
-        """Command ``v_c``, step the arm ``dt``; a :class:`PlantStop` if the run ends here."""
-        self.arm.command(v_c)
+        """
+        Command ``v_c``, step the arm ``dt``; a :class:`PlantStop` if the run ends here.
+
+        A twist the arm refuses (not finite, beyond its physical bound) ends the run
+        (TARGET_LOST: no valid twist, the arm's reason as the detail) after a step at rest,
+        recorded as any other: it is not an exception out of the loop, whose caller would
+        take it for a target not observable from the start.
+        """
+        refused = None
+        try:
+            self.arm.command(v_c)
+        except TwistError as exc:  # the arm has stopped
+            refused = exc
         info = self.arm.step(dt)
         self.statuses.append(info.status)
         self.joints.append(self.arm.q.copy())
+        if refused is not None:
+            return PlantStop(LoopOutcome.TARGET_LOST, f'the arm refused the twist: {refused}')
         if not self.stop_at_limit:
             return None
         if info.status == Status.JOINT_LIMIT:
