@@ -28,7 +28,11 @@ node use the shipped Fast DDS profile unless the environment names another
 Before anything starts, the scenario is checked as each node would check it
 (:func:`preflight`: its parameters, an unknown name included, and what its core refuses at
 start: a missing ``desired_image``, an unreachable ``start_cMo``, …), and a refusal is the
-node's own line with exit code 2. A node that exits during the start-up or the run ends it
+node's own line with exit code 2; so are a scenario without nodes or with a node named
+twice, a params section that names no node (:func:`check_scenario`), a timeout that is not
+a finite number of seconds > 0, and an environment in which no node could work (a bad
+``ROS_DOMAIN_ID``, Fast DDS profile or ``RMW_IMPLEMENTATION``:
+:func:`~sphere_servo.bringup.processes.check_environment`). A node that exits during the start-up or the run ends it
 at once (exit 3), with that node's exit code and last words. The run (the teach sequence
 and its jumps) begins once every node has reported on ``/diagnostics``; the arm never
 jumps unless the servo runs.
@@ -37,21 +41,21 @@ from __future__ import annotations
 
 import argparse
 from enum import IntEnum
+import math
 import os
 import signal
 import sys
 import time
 
-from sphere_servo.bringup.processes import Launcher, LaunchError
+from sphere_servo.bringup.processes import check_environment, Launcher, LaunchError
 from sphere_servo.bringup.supervisor import Supervisor
 from sphere_servo.pipeline.arm_sim import ArmSimCore
-from sphere_servo.pipeline.config import ConfigError, Scenario, scenario
+from sphere_servo.pipeline.config import ConfigError, read_yaml, Scenario, scenario
 from sphere_servo.pipeline.detector import DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore
 from sphere_servo.pipeline.middleware import middleware_env
 from sphere_servo.pipeline.params import NODE_PARAMS
 from sphere_servo.pipeline.servo import ServoCore
-from sphere_servo.ros.params import StopFlag
 
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
 RECORDER_IDLE_TIMEOUT = 8.0  # wall s the end of a run waits for the late messages to come
@@ -70,6 +74,28 @@ class ExitCode(IntEnum):
     NODE_DIED = 3      # a node exited, or the run could not go on (a service missing)
     TEACH_FAILED = 4   # the teach sequence failed while every node lived
     INTERRUPTED = 130  # Ctrl-C or SIGTERM during --until-converged (128 + SIGINT)
+
+
+def check_scenario(sc: Scenario) -> str:
+    """
+    Return why the launcher cannot start ``sc`` as its nodes would read it ('' if it can).
+
+    No node (nothing would run), a node named twice (two processes of one name: two servos
+    driving one arm), a params file section that names none of the nodes (``sevro:``, a
+    wildcard other than ``/**``): the nodes would ignore it, and run on their defaults.
+    """
+    if not sc.nodes:
+        return 'no nodes: nothing would run'
+    twice = sorted({n for n in sc.nodes if sc.nodes.count(n) > 1})
+    if twice:
+        return f'node(s) {twice} named twice (two processes of one name)'
+    known = {'/**'} | {k for n in NODE_PARAMS for k in (n, f'/{n}')}
+    for path in sc.params_files:
+        other = sorted(str(k) for k in read_yaml(path) if k not in known)
+        if other:
+            return (f'{path}: section(s) {other} name no node of the pipeline (use '
+                    f'{sorted(NODE_PARAMS)}, /<node> or /**): the nodes would ignore them')
+    return ''
 
 
 def preflight(sc: Scenario) -> str:
@@ -113,11 +139,20 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         log(f'scenario error ({sc.path}): teach needs the servo among the nodes (the arm '
             'never jumps without a live servo)')
         return ExitCode.BAD_CONFIG, None, {}
-    refused = preflight(sc)
+    refused = check_scenario(sc) or preflight(sc)
     if refused:
         log(f'scenario error ({sc.path}), nothing started: {refused}')
         return ExitCode.BAD_CONFIG, None, {}
     timeout = float(timeout if timeout is not None else sc.timeout)
+    if not (math.isfinite(timeout) and timeout > 0):  # nan: a run that never times out
+        log(f'timeout must be a finite number of seconds > 0, got {timeout}; nothing started')
+        return ExitCode.BAD_CONFIG, None, {}
+    try:
+        check_environment(env if env is not None else os.environ)
+    except LaunchError as exc:
+        log(f'environment error, nothing started: {exc}')
+        return ExitCode.BAD_CONFIG, None, {}
+    from sphere_servo.ros.params import StopFlag  # rclpy: only once the rmw is known to load
     launcher = Launcher(sc, out=out, env=env, single_process=single_process, nice=nice)
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
@@ -191,9 +226,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         dead = launcher.deaths()
         log(f'node(s) exited during start-up: {dead}' if dead else str(exc))
         code = ExitCode.NODE_DIED
-    finally:
-        for sig, handler in old_handlers.items():
-            signal.signal(sig, handler)
+    finally:  # a Ctrl-C or SIGTERM from here on is ignored: the nodes stop in their order
         if sup is not None:
             sup.stop = lambda: False  # the last messages still come in
             if record and not interrupted:  # the servo first (its last word: a zero twist),
@@ -205,6 +238,8 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
             sup.spin(0.2)
             sup.close()
         codes = launcher.stop()
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
         bad = {n: c for n, c in codes.items() if c not in (0, None)}
         if bad:
             log(f'exit codes: {bad}')
