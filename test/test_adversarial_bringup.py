@@ -14,6 +14,8 @@ launcher that runs with nothing working:
   section for a node that does not exist (``sevro:``, a wildcard the launcher does not
   read), no node, a node named twice (two processes of one name); ``pipeline`` given a
   node twice;
+- the launch file (no ``launch`` package here: it is loaded over stand-ins of the four
+  names it imports) refuses what the launcher refuses before starting anything;
 - the processes: a node that ignores SIGINT is killed after the timeout and the others are
   still stopped, servo first; a node killed by a signal is reported with the signal's name;
   a launcher killed by SIGKILL or SIGHUP takes its nodes with it.
@@ -22,6 +24,7 @@ The ROS tests are in ``test_adversarial_bringup_ros.py``.
 """
 from __future__ import annotations
 
+import importlib.util
 import io
 import os
 from pathlib import Path
@@ -29,13 +32,14 @@ import signal
 import subprocess
 import sys
 import time
+import types
 
 import pytest
 
 from sphere_servo.bringup import launcher, single
 from sphere_servo.bringup.launcher import check_scenario, ExitCode
 from sphere_servo.bringup.processes import check_environment, Launcher, LaunchError
-from sphere_servo.pipeline.config import load_scenario, scenario
+from sphere_servo.pipeline.config import ConfigError, load_scenario, scenario
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'config' / 'params'
@@ -194,6 +198,49 @@ def test_pipeline_refuses_a_node_named_twice(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert 'refused to start' in err and "['servo'] named twice" in err
+
+
+def _launch_file(monkeypatch):
+    """Load launch/sphere_servo.launch.py over stand-ins of ``launch`` and ``launch_ros``."""
+    class Node:
+
+        def __init__(self, **kw):
+            self.kw = kw
+
+    class LaunchConfiguration:
+
+        def __init__(self, name):
+            self.name = name
+
+        def perform(self, context):
+            return context[self.name]
+    names = {'launch': {'LaunchDescription': list},
+             'launch.actions': {'DeclareLaunchArgument': dict, 'OpaqueFunction': dict},
+             'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
+             'launch_ros': {}, 'launch_ros.actions': {'Node': Node}}
+    for module, attrs in names.items():
+        monkeypatch.setitem(sys.modules, module, types.SimpleNamespace(**attrs))
+    spec = importlib.util.spec_from_file_location('launch_file',
+                                                  REPO / 'launch' / 'sphere_servo.launch.py')
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize('nodes, params, needle', [
+    ('[]', 'servo:\n  ros__parameters: {}\n', 'no nodes'),
+    ('[servo, servo]', 'servo:\n  ros__parameters: {}\n', 'named twice'),
+    ('[servo]', 'sevro:\n  ros__parameters:\n    gain: 2.0\n', "['sevro']"),
+])
+def test_the_launch_file_refuses_what_the_launcher_refuses(monkeypatch, tmp_path,
+                                                           nodes, params, needle):
+    mod = _launch_file(monkeypatch)
+    path = _scenario(tmp_path, params, nodes)
+    with pytest.raises(ConfigError, match='nothing started') as exc:
+        mod._nodes({'scenario': str(path)})
+    assert needle in str(exc.value) and str(path) in str(exc.value)
+    started = mod._nodes({'scenario': 'special_sphere'})  # the shipped one starts its four
+    assert [n.kw['name'] for n in started] == list(scenario('special_sphere').nodes)
 
 
 # --- the processes --------------------------------------------------------------------------

@@ -32,10 +32,13 @@ node's own line with exit code 2; so are a scenario without nodes or with a node
 twice, a params section that names no node (:func:`check_scenario`), a timeout that is not
 a finite number of seconds > 0, and an environment in which no node could work (a bad
 ``ROS_DOMAIN_ID``, Fast DDS profile or ``RMW_IMPLEMENTATION``:
-:func:`~sphere_servo.bringup.processes.check_environment`). A node that exits during the start-up or the run ends it
-at once (exit 3), with that node's exit code and last words. The run (the teach sequence
-and its jumps) begins once every node has reported on ``/diagnostics``; the arm never
-jumps unless the servo runs.
+:func:`~sphere_servo.bringup.processes.check_environment`). A node that exits during the
+start-up or the run ends it at once (exit 3), with that node's exit code and last words.
+Nodes of the pipeline's names already on the domain (another pipeline's: two arms, two
+servos on one set of topics) are waited for as long as a killed process's linger, then
+refused (exit 2, nothing started); two of one name during the run (another pipeline
+joined) end it (exit 3). The run (the teach sequence and its jumps) begins once every node
+has reported on ``/diagnostics``; the arm never jumps unless the servo runs.
 """
 from __future__ import annotations
 
@@ -60,9 +63,20 @@ from sphere_servo.pipeline.servo import ServoCore
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
 RECORDER_IDLE_TIMEOUT = 8.0  # wall s the end of a run waits for the late messages to come
 STARTUP_TIMEOUT = 60.0       # wall s the nodes have to start (the servo's first state)
+DISCOVERY_WAIT = 1.0         # wall s to hear the nodes already on the domain, before a start
+STALE_WAIT = 25.0            # wall s for such nodes to go: Fast DDS drops a killed process's
+#                              participant after its lease (20 s)
 #: what each node builds at start from its parameters: its core refuses what it cannot use
 NODE_CORES = {'arm_sim': ArmSimCore, 'detector': DetectorCore, 'features': FeaturesCore,
               'servo': ServoCore}
+
+
+class DomainBusy(LaunchError):
+    """The pipeline's nodes are on the domain already: the launch is refused (exit 2)."""
+
+
+class DomainShared(LaunchError):
+    """Another node of one of the pipeline's names joined the domain during the run (exit 3)."""
 
 
 class ExitCode(IntEnum):
@@ -167,12 +181,24 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
     # callbacks (one raised asynchronously inside rclpy's C++ take was lost: see ros.params)
     stop = StopFlag()
     old_handlers = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    watched = list(sc.nodes) + (['recorder'] if record else [])
     try:
-        launcher.start(extra)
         sup = Supervisor(sc, collect=collect,
                          domain_id=int(domain) if domain not in (None, '') else None,
                          stop=lambda: stop.requested)
-        alive = lambda: not launcher.dead()  # noqa: E731
+        sup.spin(DISCOVERY_WAIT)  # the nodes already there: another pipeline, or a killed one's
+        if sup.present(watched) and not sup.wait(lambda: not sup.present(watched), STALE_WAIT):
+            raise DomainBusy(f'ROS_DOMAIN_ID {domain or 0} already has the node(s) '
+                             f'{sup.present(watched)} (another pipeline runs there): nothing '
+                             'started; stop it or use another ROS_DOMAIN_ID')
+        launcher.start(extra)
+
+        def alive():
+            twice = sup.doubles(watched)
+            if twice:  # two arms, two servos: their topics would be mixed
+                raise DomainShared(f'two nodes named {twice} on ROS_DOMAIN_ID {domain or 0}: '
+                                   'another pipeline joined the domain; stopping')
+            return not launcher.dead()
         if not sup.wait_nodes(sc.nodes, STARTUP_TIMEOUT, alive):  # every node runs
             raise LaunchError(f'nodes not started within {STARTUP_TIMEOUT:g} s: '
                               f'{sorted(set(sc.nodes) - sup.heard)}')
@@ -183,6 +209,8 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         if sc.teach:
             try:
                 sup.teach(log, alive)
+            except DomainShared:
+                raise
             except LaunchError as exc:
                 dead = launcher.deaths()
                 log(f'teach sequence failed: {dead or exc}')
@@ -194,7 +222,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         last_print = 0.0
         while True:
             sup.spin(0.05)
-            if launcher.dead():
+            if not alive():
                 log(f'node(s) exited: {launcher.deaths()}')
                 code = ExitCode.NODE_DIED
                 break
@@ -222,6 +250,12 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
     except KeyboardInterrupt:
         interrupted = True
         log('interrupted: stopping the nodes')
+    except DomainBusy as exc:
+        log(str(exc))
+        code = ExitCode.BAD_CONFIG
+    except DomainShared as exc:
+        log(str(exc))
+        code = ExitCode.NODE_DIED
     except LaunchError as exc:
         dead = launcher.deaths()
         log(f'node(s) exited during start-up: {dead}' if dead else str(exc))
