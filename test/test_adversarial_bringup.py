@@ -8,7 +8,7 @@ launcher that runs with nothing working:
   octal 8 where Python reads 10, and exits at the first node above 232: both shown on a real
   rclpy context), a Fast DDS profile that is not XML or not a profile (Fast DDS logs an
   error and runs on its defaults), an ``RMW_IMPLEMENTATION`` that is not installed (rcl
-  ends the process that loads it with 102);
+  ends the process that loads it with 102), a ``ROS_STATIC_PEERS`` rcl cannot resolve;
 - the command line: a ``--timeout`` that is nan (a run that never times out), ≤ 0 or inf;
 - the scenario and its params files: missing, empty, not YAML, of the wrong shape, a
   section for a node that does not exist (``sevro:``, a wildcard the launcher does not
@@ -123,6 +123,17 @@ def test_an_rmw_that_is_not_installed_is_refused_not_exit_102():
                        env=env, capture_output=True, text=True, timeout=120)
     assert p.returncode == ExitCode.BAD_CONFIG, p.stdout + p.stderr
     assert "RMW_IMPLEMENTATION='rmw_no_such_dds_cpp' cannot be used" in p.stdout
+
+
+def test_a_peer_rcl_cannot_resolve_is_refused_before_any_node_starts():
+    """No node with ROS_STATIC_PEERS=@@@ (rcl cannot resolve it): the launcher's own is first."""
+    env = dict(os.environ, ROS_STATIC_PEERS='@@@', ROS_DOMAIN_ID='61', PYTHONPATH=str(REPO))
+    p = subprocess.run([PY, '-m', 'sphere_servo.bringup.launcher', '--until-converged'],
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == ExitCode.BAD_CONFIG, p.stdout + p.stderr
+    assert "the launcher's node cannot be made here, nothing started" in p.stdout
+    assert 'Unable to resolve peer @@@' in p.stdout and 'Traceback' not in p.stderr
+    assert not any(line.startswith('[servo]') for line in p.stdout.splitlines())
 
 
 # --- the command line -----------------------------------------------------------------------

@@ -71,8 +71,8 @@ NODE_CORES = {'arm_sim': ArmSimCore, 'detector': DetectorCore, 'features': Featu
               'servo': ServoCore}
 
 
-class DomainBusy(LaunchError):
-    """The pipeline's nodes are on the domain already: the launch is refused (exit 2)."""
+class NotStarted(LaunchError):
+    """The launch is refused before any node started (exit 2): the domain, the middleware."""
 
 
 class DomainShared(LaunchError):
@@ -183,12 +183,20 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
     old_handlers = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     watched = list(sc.nodes) + (['recorder'] if record else [])
     try:
-        sup = Supervisor(sc, collect=collect,
-                         domain_id=int(domain) if domain not in (None, '') else None,
-                         stop=lambda: stop.requested)
+        try:
+            sup = Supervisor(sc, collect=collect,
+                             domain_id=int(domain) if domain not in (None, '') else None,
+                             stop=lambda: stop.requested)
+        except RuntimeError as exc:  # rclpy's RCLError: ROS_STATIC_PEERS=@@@, …
+            said = ' '.join(str(exc).split()).split(', at /')[0]
+            raise NotStarted(f"the launcher's node cannot be made here, nothing started: "
+                             f'{said}') from None
         sup.spin(DISCOVERY_WAIT)  # the nodes already there: another pipeline, or a killed one's
+        if sup.present(watched):
+            log(f'ROS_DOMAIN_ID {domain or 0} has the node(s) {sup.present(watched)}: waiting '
+                f"up to {STALE_WAIT:g} s for them to go (a killed process's linger)")
         if sup.present(watched) and not sup.wait(lambda: not sup.present(watched), STALE_WAIT):
-            raise DomainBusy(f'ROS_DOMAIN_ID {domain or 0} already has the node(s) '
+            raise NotStarted(f'ROS_DOMAIN_ID {domain or 0} already has the node(s) '
                              f'{sup.present(watched)} (another pipeline runs there): nothing '
                              'started; stop it or use another ROS_DOMAIN_ID')
         launcher.start(extra)
@@ -250,7 +258,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
     except KeyboardInterrupt:
         interrupted = True
         log('interrupted: stopping the nodes')
-    except DomainBusy as exc:
+    except NotStarted as exc:
         log(str(exc))
         code = ExitCode.BAD_CONFIG
     except DomainShared as exc:
