@@ -6,6 +6,9 @@ Start the sphere_servo nodes of a scenario with ``ros2 launch`` (full ROS 2 Jazz
 Reads the scenario file ``share/sphere_servo/config/scenarios/<scenario>.yaml`` (or a path)
 with the launcher's own reader and starts each of its nodes with each of its params files,
 in order: the same nodes with the same parameter files as ``launcher --config <scenario>``.
+What the launcher refuses before it starts anything and a node would not refuse itself
+(no node, a node named twice, a params section that names no node: ``check_scenario``) is
+refused here too, with the launcher's line.
 
 It does not run the teach sequence, wait for the recorder or watch for convergence: that
 is the Python launcher's job. With a teach scenario (the servo starts disabled) do it by
@@ -20,13 +23,17 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from sphere_servo.pipeline.config import scenario
+from sphere_servo.bringup.launcher import check_scenario
+from sphere_servo.pipeline.config import ConfigError, scenario
 
 DEFAULT_SCENARIO = 'special_sphere'
 
 
 def _nodes(context):
     sc = scenario(LaunchConfiguration('scenario').perform(context))
+    refused = check_scenario(sc)
+    if refused:
+        raise ConfigError(f'scenario error ({sc.path}), nothing started: {refused}')
     return [Node(package='sphere_servo', executable=name, name=name, output='screen',
                  parameters=[str(path) for path in sc.params_files])
             for name in sc.nodes]

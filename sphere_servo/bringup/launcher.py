@@ -28,37 +28,55 @@ node use the shipped Fast DDS profile unless the environment names another
 Before anything starts, the scenario is checked as each node would check it
 (:func:`preflight`: its parameters, an unknown name included, and what its core refuses at
 start: a missing ``desired_image``, an unreachable ``start_cMo``, …), and a refusal is the
-node's own line with exit code 2. A node that exits during the start-up or the run ends it
-at once (exit 3), with that node's exit code and last words. The run (the teach sequence
-and its jumps) begins once every node has reported on ``/diagnostics``; the arm never
-jumps unless the servo runs.
+node's own line with exit code 2; so are a scenario without nodes or with a node named
+twice, a params section that names no node (:func:`check_scenario`), a timeout that is not
+a finite number of seconds > 0, and an environment in which no node could work (a bad
+``ROS_DOMAIN_ID``, Fast DDS profile or ``RMW_IMPLEMENTATION``:
+:func:`~sphere_servo.bringup.processes.check_environment`). A node that exits during the
+start-up or the run ends it at once (exit 3), with that node's exit code and last words.
+Nodes of the pipeline's names already on the domain (another pipeline's: two arms, two
+servos on one set of topics) are waited for as long as a killed process's linger, then
+refused (exit 2, nothing started); two of one name during the run (another pipeline
+joined) end it (exit 3). The run (the teach sequence and its jumps) begins once every node
+has reported on ``/diagnostics``; the arm never jumps unless the servo runs.
 """
 from __future__ import annotations
 
 import argparse
 from enum import IntEnum
+import math
 import os
 import signal
 import sys
 import time
 
-from sphere_servo.bringup.processes import Launcher, LaunchError
+from sphere_servo.bringup.processes import check_environment, Launcher, LaunchError
 from sphere_servo.bringup.supervisor import Supervisor
 from sphere_servo.pipeline.arm_sim import ArmSimCore
-from sphere_servo.pipeline.config import ConfigError, Scenario, scenario
+from sphere_servo.pipeline.config import ConfigError, read_yaml, Scenario, scenario
 from sphere_servo.pipeline.detector import DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore
 from sphere_servo.pipeline.middleware import middleware_env
 from sphere_servo.pipeline.params import NODE_PARAMS
 from sphere_servo.pipeline.servo import ServoCore
-from sphere_servo.ros.params import StopFlag
 
 RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match every topic
 RECORDER_IDLE_TIMEOUT = 8.0  # wall s the end of a run waits for the late messages to come
 STARTUP_TIMEOUT = 60.0       # wall s the nodes have to start (the servo's first state)
+DISCOVERY_WAIT = 1.0         # wall s to hear the nodes already on the domain, before a start
+STALE_WAIT = 25.0            # wall s for such nodes to go: Fast DDS drops a killed process's
+#                              participant after its lease (20 s)
 #: what each node builds at start from its parameters: its core refuses what it cannot use
 NODE_CORES = {'arm_sim': ArmSimCore, 'detector': DetectorCore, 'features': FeaturesCore,
               'servo': ServoCore}
+
+
+class NotStarted(LaunchError):
+    """The launch is refused before any node started (exit 2): the domain, the middleware."""
+
+
+class DomainShared(LaunchError):
+    """Another node of one of the pipeline's names joined the domain during the run (exit 3)."""
 
 
 class ExitCode(IntEnum):
@@ -70,6 +88,28 @@ class ExitCode(IntEnum):
     NODE_DIED = 3      # a node exited, or the run could not go on (a service missing)
     TEACH_FAILED = 4   # the teach sequence failed while every node lived
     INTERRUPTED = 130  # Ctrl-C or SIGTERM during --until-converged (128 + SIGINT)
+
+
+def check_scenario(sc: Scenario) -> str:
+    """
+    Return why the launcher cannot start ``sc`` as its nodes would read it ('' if it can).
+
+    No node (nothing would run), a node named twice (two processes of one name: two servos
+    driving one arm), a params file section that names none of the nodes (``sevro:``, a
+    wildcard other than ``/**``): the nodes would ignore it, and run on their defaults.
+    """
+    if not sc.nodes:
+        return 'no nodes: nothing would run'
+    twice = sorted({n for n in sc.nodes if sc.nodes.count(n) > 1})
+    if twice:
+        return f'node(s) {twice} named twice (two processes of one name)'
+    known = {'/**'} | {k for n in NODE_PARAMS for k in (n, f'/{n}')}
+    for path in sc.params_files:
+        other = sorted(str(k) for k in read_yaml(path) if k not in known)
+        if other:
+            return (f'{path}: section(s) {other} name no node of the pipeline (use '
+                    f'{sorted(NODE_PARAMS)}, /<node> or /**): the nodes would ignore them')
+    return ''
 
 
 def preflight(sc: Scenario) -> str:
@@ -113,11 +153,20 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         log(f'scenario error ({sc.path}): teach needs the servo among the nodes (the arm '
             'never jumps without a live servo)')
         return ExitCode.BAD_CONFIG, None, {}
-    refused = preflight(sc)
+    refused = check_scenario(sc) or preflight(sc)
     if refused:
         log(f'scenario error ({sc.path}), nothing started: {refused}')
         return ExitCode.BAD_CONFIG, None, {}
     timeout = float(timeout if timeout is not None else sc.timeout)
+    if not (math.isfinite(timeout) and timeout > 0):  # nan: a run that never times out
+        log(f'timeout must be a finite number of seconds > 0, got {timeout}; nothing started')
+        return ExitCode.BAD_CONFIG, None, {}
+    try:
+        check_environment(env if env is not None else os.environ)
+    except LaunchError as exc:
+        log(f'environment error, nothing started: {exc}')
+        return ExitCode.BAD_CONFIG, None, {}
+    from sphere_servo.ros.params import StopFlag  # rclpy: only once the rmw is known to load
     launcher = Launcher(sc, out=out, env=env, single_process=single_process, nice=nice)
     domain = (env or os.environ).get('ROS_DOMAIN_ID')
     extra = {}
@@ -132,12 +181,32 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
     # callbacks (one raised asynchronously inside rclpy's C++ take was lost: see ros.params)
     stop = StopFlag()
     old_handlers = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    watched = list(sc.nodes) + (['recorder'] if record else [])
     try:
+        try:
+            sup = Supervisor(sc, collect=collect,
+                             domain_id=int(domain) if domain not in (None, '') else None,
+                             stop=lambda: stop.requested)
+        except RuntimeError as exc:  # rclpy's RCLError: ROS_STATIC_PEERS=@@@, …
+            said = ' '.join(str(exc).split()).split(', at /')[0]
+            raise NotStarted(f"the launcher's node cannot be made here, nothing started: "
+                             f'{said}') from None
+        sup.spin(DISCOVERY_WAIT)  # the nodes already there: another pipeline, or a killed one's
+        if sup.present(watched):
+            log(f'ROS_DOMAIN_ID {domain or 0} has the node(s) {sup.present(watched)}: waiting '
+                f"up to {STALE_WAIT:g} s for them to go (a killed process's linger)")
+        if sup.present(watched) and not sup.wait(lambda: not sup.present(watched), STALE_WAIT):
+            raise NotStarted(f'ROS_DOMAIN_ID {domain or 0} already has the node(s) '
+                             f'{sup.present(watched)} (another pipeline runs there): nothing '
+                             'started; stop it or use another ROS_DOMAIN_ID')
         launcher.start(extra)
-        sup = Supervisor(sc, collect=collect,
-                         domain_id=int(domain) if domain not in (None, '') else None,
-                         stop=lambda: stop.requested)
-        alive = lambda: not launcher.dead()  # noqa: E731
+
+        def alive():
+            twice = sup.doubles(watched)
+            if twice:  # two arms, two servos: their topics would be mixed
+                raise DomainShared(f'two nodes named {twice} on ROS_DOMAIN_ID {domain or 0}: '
+                                   'another pipeline joined the domain; stopping')
+            return not launcher.dead()
         if not sup.wait_nodes(sc.nodes, STARTUP_TIMEOUT, alive):  # every node runs
             raise LaunchError(f'nodes not started within {STARTUP_TIMEOUT:g} s: '
                               f'{sorted(set(sc.nodes) - sup.heard)}')
@@ -148,6 +217,8 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         if sc.teach:
             try:
                 sup.teach(log, alive)
+            except DomainShared:
+                raise
             except LaunchError as exc:
                 dead = launcher.deaths()
                 log(f'teach sequence failed: {dead or exc}')
@@ -159,7 +230,7 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
         last_print = 0.0
         while True:
             sup.spin(0.05)
-            if launcher.dead():
+            if not alive():
                 log(f'node(s) exited: {launcher.deaths()}')
                 code = ExitCode.NODE_DIED
                 break
@@ -187,13 +258,17 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
     except KeyboardInterrupt:
         interrupted = True
         log('interrupted: stopping the nodes')
+    except NotStarted as exc:
+        log(str(exc))
+        code = ExitCode.BAD_CONFIG
+    except DomainShared as exc:
+        log(str(exc))
+        code = ExitCode.NODE_DIED
     except LaunchError as exc:
         dead = launcher.deaths()
         log(f'node(s) exited during start-up: {dead}' if dead else str(exc))
         code = ExitCode.NODE_DIED
-    finally:
-        for sig, handler in old_handlers.items():
-            signal.signal(sig, handler)
+    finally:  # a Ctrl-C or SIGTERM from here on is ignored: the nodes stop in their order
         if sup is not None:
             sup.stop = lambda: False  # the last messages still come in
             if record and not interrupted:  # the servo first (its last word: a zero twist),
@@ -205,6 +280,8 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
             sup.spin(0.2)
             sup.close()
         codes = launcher.stop()
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
         bad = {n: c for n, c in codes.items() if c not in (0, None)}
         if bad:
             log(f'exit codes: {bad}')

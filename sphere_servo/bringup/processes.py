@@ -26,12 +26,20 @@ Every process gets the shipped Fast DDS profile (``middleware_env`` of
 :mod:`sphere_servo.pipeline.middleware`) unless its environment names a profile of its own
 or another rmw. With ``single_process`` the scenario's nodes run as one process,
 ``pipeline`` (:mod:`~sphere_servo.bringup.single`), stopped first as the servo is.
+
+:func:`check_environment` refuses, before anything starts, an environment in which no node
+could work: a ``ROS_DOMAIN_ID`` that is not a decimal integer in 0…232 (rcl reads ``010``
+as octal 8 and ``0x10`` as 16, so the supervisor and the nodes would be on different
+domains; above 232 Fast DDS has no port and the process exits at its first node), a Fast
+DDS profile that is not a readable XML file (Fast DDS would log an error and run on its
+defaults), an ``RMW_IMPLEMENTATION`` that rcl cannot load (it exits at once with 102).
 """
 from __future__ import annotations
 
 import collections
 from dataclasses import dataclass, field
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -39,7 +47,7 @@ import threading
 import time
 
 from sphere_servo.pipeline.config import ConfigError, package_prefix, Scenario
-from sphere_servo.pipeline.middleware import middleware_env
+from sphere_servo.pipeline.middleware import middleware_env, PROFILE_VARIABLES, RMW
 
 MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
@@ -51,6 +59,49 @@ LAST_LINES = 20  # lines of each node's output kept, to say why it exited
 
 class LaunchError(ConfigError):
     """The config, an executable or the run cannot be used."""
+
+
+MAX_DOMAIN_ID = 232  # Fast DDS's default ports: 7400 + 250 · id + offsets ≤ 65535
+RMW_PROBE = 'from rclpy.utilities import get_rmw_implementation_identifier as g; print(g())'
+
+
+def check_environment(env) -> None:
+    """
+    Refuse (LaunchError, one line) an environment in which no node could work.
+
+    ``ROS_DOMAIN_ID``: empty/unset (rcl's default 0) or a plain decimal integer in
+    0…MAX_DOMAIN_ID. With Fast DDS, every profiles file named must be well-formed XML whose
+    root is ``<profiles>`` or ``<dds>``. Another ``RMW_IMPLEMENTATION`` must be one rcl
+    loads: that is tried in a child process, since rcl ends the process that loads it
+    otherwise.
+    """
+    domain = env.get('ROS_DOMAIN_ID', '')
+    if domain != '' and not (re.fullmatch(r'0|[1-9][0-9]{0,2}', domain)
+                             and int(domain) <= MAX_DOMAIN_ID):
+        raise LaunchError(f'ROS_DOMAIN_ID={domain!r} is not a domain: use a decimal integer '
+                          f'0…{MAX_DOMAIN_ID} without a leading zero (or unset it for 0)')
+    rmw = env.get('RMW_IMPLEMENTATION') or RMW
+    if rmw == RMW:
+        from xml.etree import ElementTree
+        for name in PROFILE_VARIABLES:
+            path = env.get(name)
+            if not path:
+                continue
+            try:
+                root = ElementTree.parse(path).getroot()
+            except (OSError, ElementTree.ParseError) as exc:
+                raise LaunchError(f'{name}={path}: not a readable XML file ({exc}); Fast '
+                                  'DDS would run on its defaults') from None
+            if root.tag.rsplit('}', 1)[-1] not in ('profiles', 'dds'):
+                raise LaunchError(f'{name}={path}: not a Fast DDS profile (its root is '
+                                  f'<{root.tag}>, not <profiles> or <dds>)')
+        return
+    probe = subprocess.run([sys.executable, '-c', RMW_PROBE], env=dict(env), text=True,
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    if probe.returncode != 0 or probe.stdout.split()[-1:] != [rmw]:
+        said = ' '.join(probe.stdout.split()[-40:]).split(', at /')[0]
+        raise LaunchError(f'RMW_IMPLEMENTATION={rmw!r} cannot be used here (exit code '
+                          f'{probe.returncode}): {said or "no output"}')
 
 
 def node_command(name: str) -> list[str]:
@@ -247,7 +298,10 @@ class Launcher:
             c = self.children[name]
             if c.thread is not None:
                 c.thread.join(2)  # its last lines are still on their way
-            out.append(f'{name} exited with code {c.popen.returncode}: {c.why()}')
+            code = c.popen.returncode
+            how = f' ({signal.Signals(-code).name})' if code < 0 and -code in \
+                signal.valid_signals() else ''
+            out.append(f'{name} exited with code {code}{how}: {c.why()}')
         return '; '.join(out)
 
     def stop(self, timeout: float = 10.0) -> dict[str, int]:

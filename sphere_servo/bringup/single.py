@@ -14,7 +14,7 @@ QoS are the same as in separate processes.
 The consumers are constructed first (servo, features, detector, then arm_sim), so the
 arm's first frame finds its readers, and shut down in that order: the servo's last word is
 a zero twist while the arm still listens. A refused parameter of any node ends the process
-with exit code 2, as one node alone does; an unknown node name too.
+with exit code 2, as one node alone does; an unknown node name, or one given twice, too.
 """
 from __future__ import annotations
 
@@ -29,8 +29,11 @@ NODE_CLASSES = {'servo': ('sphere_servo.ros.servo', 'ServoNode'),
 
 
 def node_classes(names) -> list[type]:
-    """Return the node classes of ``names``, consumers first; ValueError for an unknown name."""
+    """Return the node classes of ``names``, consumers first; ValueError: unknown or twice."""
     unknown = [n for n in names if n not in NODE_CLASSES]
+    twice = sorted({n for n in names if list(names).count(n) > 1})
+    if twice:
+        raise ValueError(f'node(s) {twice} named twice: one process holds one node of a name')
     if unknown:
         raise ValueError(f'unknown node(s) {unknown}: the pipeline composes '
                          f'{sorted(NODE_CLASSES)}')

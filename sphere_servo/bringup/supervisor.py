@@ -156,6 +156,21 @@ class Supervisor:
         for st in msg.status:
             self.heard.add(st.name.split(':', 1)[0])
 
+    def graph(self) -> collections.Counter:
+        """Return how many nodes of each name the domain's graph has (namespace ``/``)."""
+        return collections.Counter(n for n, ns in self.node.get_node_names_and_namespaces()
+                                   if ns == '/')
+
+    def present(self, names) -> list[str]:
+        """Return the nodes of ``names`` that are on the domain already (before a start)."""
+        seen = self.graph()
+        return sorted(n for n in set(names) if seen[n] > 0)
+
+    def doubles(self, names) -> list[str]:
+        """Return the nodes of ``names`` that the domain has twice or more."""
+        seen = self.graph()
+        return sorted(n for n in set(names) if seen[n] > 1)
+
     def wait_nodes(self, names, timeout: float, alive) -> bool:
         """Wait until every node of ``names`` has reported on /diagnostics (False if not)."""
         return self.wait(lambda: set(names) <= self.heard, timeout, alive)
