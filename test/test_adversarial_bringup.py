@@ -87,6 +87,21 @@ def test_the_cli_refuses_a_bad_domain_with_exit_2():
     assert "ROS_DOMAIN_ID='300'" in p.stdout and 'Traceback' not in p.stderr
 
 
+@pytest.mark.parametrize('var, value, needle', [
+    ('ROS_DOMAIN_ID', '300', "ROS_DOMAIN_ID='300'"),
+    ('ROS_DOMAIN_ID', '010', "ROS_DOMAIN_ID='010'"),
+    ('FASTRTPS_DEFAULT_PROFILES_FILE', str(REPO / 'README.md'), 'not a readable XML file')])
+def test_a_node_started_alone_refuses_that_environment_with_exit_2(var, value, needle):
+    """As ``ros2 run sphere_servo servo`` would start it: exit 2, one line, no traceback."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), RMW_IMPLEMENTATION='rmw_fastrtps_cpp')
+    env[var] = value
+    p = subprocess.run([PY, '-m', 'sphere_servo.ros.servo'], env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert needle in p.stderr and 'refused to start' in p.stderr, p.stderr
+    assert 'Traceback' not in p.stderr
+
+
 @pytest.mark.parametrize('body, needle', [
     ('<?xml version="1.0"?><profiles><broken', 'not a readable XML file'),
     ('', 'not a readable XML file'),

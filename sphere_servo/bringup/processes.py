@@ -39,7 +39,6 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass, field
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -47,7 +46,7 @@ import threading
 import time
 
 from sphere_servo.pipeline.config import ConfigError, package_prefix, Scenario
-from sphere_servo.pipeline.middleware import middleware_env, PROFILE_VARIABLES, RMW
+from sphere_servo.pipeline.middleware import environment_problem, middleware_env, RMW
 
 MODULES = {'arm_sim': 'sphere_servo.ros.arm_sim', 'detector': 'sphere_servo.ros.detector',
            'features': 'sphere_servo.ros.features', 'servo': 'sphere_servo.ros.servo',
@@ -61,7 +60,6 @@ class LaunchError(ConfigError):
     """The config, an executable or the run cannot be used."""
 
 
-MAX_DOMAIN_ID = 232  # Fast DDS's default ports: 7400 + 250 · id + offsets ≤ 65535
 RMW_PROBE = 'from rclpy.utilities import get_rmw_implementation_identifier as g; print(g())'
 
 
@@ -69,32 +67,15 @@ def check_environment(env) -> None:
     """
     Refuse (LaunchError, one line) an environment in which no node could work.
 
-    ``ROS_DOMAIN_ID``: empty/unset (rcl's default 0) or a plain decimal integer in
-    0…MAX_DOMAIN_ID. With Fast DDS, every profiles file named must be well-formed XML whose
-    root is ``<profiles>`` or ``<dds>``. Another ``RMW_IMPLEMENTATION`` must be one rcl
-    loads: that is tried in a child process, since rcl ends the process that loads it
-    otherwise.
+    :func:`~sphere_servo.pipeline.middleware.environment_problem` (the domain, the Fast DDS
+    profiles); another ``RMW_IMPLEMENTATION`` must be one rcl loads: that is tried in a
+    child process, since rcl ends the process that loads it otherwise.
     """
-    domain = env.get('ROS_DOMAIN_ID', '')
-    if domain != '' and not (re.fullmatch(r'0|[1-9][0-9]{0,2}', domain)
-                             and int(domain) <= MAX_DOMAIN_ID):
-        raise LaunchError(f'ROS_DOMAIN_ID={domain!r} is not a domain: use a decimal integer '
-                          f'0…{MAX_DOMAIN_ID} without a leading zero (or unset it for 0)')
+    problem = environment_problem(env)
+    if problem is not None:
+        raise LaunchError(problem)
     rmw = env.get('RMW_IMPLEMENTATION') or RMW
     if rmw == RMW:
-        from xml.etree import ElementTree
-        for name in PROFILE_VARIABLES:
-            path = env.get(name)
-            if not path:
-                continue
-            try:
-                root = ElementTree.parse(path).getroot()
-            except (OSError, ElementTree.ParseError) as exc:
-                raise LaunchError(f'{name}={path}: not a readable XML file ({exc}); Fast '
-                                  'DDS would run on its defaults') from None
-            if root.tag.rsplit('}', 1)[-1] not in ('profiles', 'dds'):
-                raise LaunchError(f'{name}={path}: not a Fast DDS profile (its root is '
-                                  f'<{root.tag}>, not <profiles> or <dds>)')
         return
     probe = subprocess.run([sys.executable, '-c', RMW_PROBE], env=dict(env), text=True,
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
@@ -241,7 +222,7 @@ class Launcher:
     out: object = sys.stdout
     env: dict | None = None  # the children's environment (default: this process's)
     children: dict = field(default_factory=dict)
-    single_process: bool = False  # the nodes in one process, SINGLE (on one executor)
+    single_process: bool = False  # the nodes in one process, SINGLE
     nice: int = 0  # added to every node's niceness (negative: before other work on the CPU)
 
     def start(self, extra: dict | None = None) -> None:

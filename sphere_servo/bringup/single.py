@@ -1,13 +1,17 @@
 """
-``pipeline``: the pipeline's nodes in one process, on one executor (``launcher --single-process``).
+``pipeline``: the pipeline's nodes in one process (``launcher --single-process``).
 
     pipeline [arm_sim detector features servo] --ros-args --params-file A --params-file B
 
 The rclpy counterpart of component composition: the node classes of ``arm_sim``,
 ``detector``, ``features`` and ``servo`` (:mod:`sphere_servo.ros`) are constructed in this
-process and spun by one single-threaded executor (:func:`sphere_servo.ros.params.run`), so
-a message between them never leaves the process: Fast DDS hands it from writer to reader
-inside the one participant the process has, without a transport. Each node takes its own
+process and spun there (:func:`sphere_servo.ros.params.run`): detector, features and servo
+on one EventsExecutor, arm_sim (its command callback reads its MessageInfo, which that
+executor does not pass) on a classic executor on a thread of its own, as
+``component_container_isolated`` gives a component its own
+(:class:`~sphere_servo.ros.executors.NodeExecutors`). A message between them never leaves
+the process: Fast DDS hands it from writer to reader inside the one participant the process
+has, without a transport. Each node takes its own
 section of the params files, as when it runs alone; names, topics, services, parameters and
 QoS are the same as in separate processes.
 

@@ -13,12 +13,14 @@ be in the environment of every node process before ``rclpy.init``:
 :func:`profile_path` finds the profile as :func:`~sphere_servo.pipeline.config.find_config`
 finds a config: in the install space (``share/sphere_servo/config``) if the package is
 installed, else in the source tree. :func:`middleware_env` adds the variables to an
-environment, keeping what the user chose there.
+environment, keeping what the user chose there. :func:`environment_problem` says what in an
+environment no node can work with (the launcher and every node refuse to start on it).
 """
 from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
+import re
 
 from sphere_servo.pipeline.config import package_prefix, SOURCE_CONFIG
 
@@ -26,6 +28,39 @@ PROFILE_NAME = 'fastdds.xml'
 RMW = 'rmw_fastrtps_cpp'
 # Fast DDS 2.x (Jazzy) reads the first, Fast DDS 3.x the second
 PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+MAX_DOMAIN_ID = 232  # Fast DDS's default ports: 7400 + 250 · id + offsets ≤ 65535
+
+
+def environment_problem(env: Mapping[str, str]) -> str | None:
+    """
+    Return what in ``env`` no node can work with (one line), or None.
+
+    ``ROS_DOMAIN_ID``: empty/unset (rcl's default 0) or a plain decimal integer in
+    0…MAX_DOMAIN_ID (rcl reads ``010`` as octal 8, Fast DDS has no ports above 232). With
+    Fast DDS, every profiles file named must be well-formed XML whose root is ``<profiles>``
+    or ``<dds>`` (Fast DDS logs a malformed one and runs on its defaults).
+    """
+    domain = env.get('ROS_DOMAIN_ID', '')
+    if domain != '' and not (re.fullmatch(r'0|[1-9][0-9]{0,2}', domain)
+                             and int(domain) <= MAX_DOMAIN_ID):
+        return (f'ROS_DOMAIN_ID={domain!r} is not a domain: use a decimal integer '
+                f'0…{MAX_DOMAIN_ID} without a leading zero (or unset it for 0)')
+    if (env.get('RMW_IMPLEMENTATION') or RMW) != RMW:
+        return None
+    from xml.etree import ElementTree
+    for name in PROFILE_VARIABLES:
+        path = env.get(name)
+        if not path:
+            continue
+        try:
+            root = ElementTree.parse(path).getroot()
+        except (OSError, ElementTree.ParseError) as exc:
+            return (f'{name}={path}: not a readable XML file ({exc}); Fast DDS would run on '
+                    'its defaults')
+        if root.tag.rsplit('}', 1)[-1] not in ('profiles', 'dds'):
+            return (f'{name}={path}: not a Fast DDS profile (its root is <{root.tag}>, not '
+                    '<profiles> or <dds>)')
+    return None
 
 
 def profile_path() -> Path:

@@ -15,6 +15,7 @@ start-up are frozen (:func:`freeze_startup`) before the first callback.
 from __future__ import annotations
 
 import gc
+import os
 from pathlib import Path
 import signal
 import sys
@@ -27,6 +28,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
 from sphere_servo.pipeline.config import ConfigError, read_yaml
+from sphere_servo.pipeline.middleware import environment_problem
 from sphere_servo.pipeline.params import (check_names, NodeParams, Param, ParameterError,
                                           ROS_PARAMETERS)
 from sphere_servo.ros.executors import NodeExecutors
@@ -177,10 +179,15 @@ def run(node_factory, name: str, args=None) -> None:
     executor; with arm_sim among others, its own on a thread) and shut down in the list's
     order. rclpy's own signal handler is disabled so the context is still valid in
     ``on_shutdown()``. The start-up's objects are frozen before the first spin
-    (:func:`freeze_startup`). A bad params file, a refused or an undeclared parameter end
-    the process with a one-line message and exit code 2.
+    (:func:`freeze_startup`). An environment no node can work with
+    (:func:`~sphere_servo.pipeline.middleware.environment_problem`), a bad params file, a
+    refused or an undeclared parameter end the process with a one-line message and exit
+    code 2.
     """
     try:
+        problem = environment_problem(os.environ)
+        if problem is not None:
+            raise ConfigError(problem)
         check_params_files(sys.argv if args is None else args)
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except (ConfigError, _rclpy.RCLError) as exc:
