@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+import itertools
 from pathlib import Path
 import subprocess
 import sys
@@ -214,17 +215,33 @@ class VideoResult:
 
 
 class FrameDrawer:
-    """Compose the video frames of a run (camera image with overlays | plot panel)."""
+    """
+    Compose the video frames of a run (camera image with overlays | plot panel).
 
-    def __init__(self, run: Run, target_kind: str = 'special'):
-        if run.camera is not None:
+    The overlays are drawn on each image at its own size (the measurements are in its
+    pixels), then the image is scaled to the frame's: ``size`` (W, H) of the run's first
+    image, else the ``camera_info``'s, else 640 × 480. BagError when the recorded
+    measurements see a mark the target of ``target_kind`` does not have (another scenario).
+    """
+
+    def __init__(self, run: Run, target_kind: str = 'special', size: tuple | None = None):
+        if size is not None:
+            W, H = (int(x) for x in size)
+        elif run.camera is not None:
             W, H = run.camera.width, run.camera.height
         else:
             W, H = 640, 480
         self.run, self.W, self.H = run, W, H
-        colors = make_target(target_kind).colors
-        names = ('P1', 'P3') if target_kind == 'cc' else ('P1', 'P2')
+        target = make_target(target_kind)
+        colors, names = target.colors, target.mark_names
         self.mark_colors = {n: colors.get(n, colors['P2']) for n in names}
+        seen = {k[:-2] for m in run.meas.values() for k in m
+                if k.endswith('_u') and k != 'ellipse_u'}
+        if seen - set(names):
+            raise BagError(f'{run.path}: the measurements see marks '
+                           f'{", ".join(sorted(seen - set(names)))} that a {target_kind} '
+                           f'target has not ({", ".join(names)}): give --config the run was '
+                           'recorded with')
         n = len(run.frames)
         self.err = run.series(run.error_norm, 1)[:, 0]
         self.twist = run.series(run.twists, 6)
@@ -248,14 +265,14 @@ class FrameDrawer:
 
     def draw(self, k: int, stamp: int, img: np.ndarray) -> np.ndarray:
         """Compose the video frame ``k`` (rgb8, :attr:`size`) of the image stamped ``stamp``."""
-        if img.shape[:2] != (self.H, self.W):
-            img = cv2.resize(img, (self.W, self.H), interpolation=cv2.INTER_AREA)
         cam = img.copy()
         if self.run.desired is not None:
             draw_measurement(cam, self.run.desired.values, MAGENTA, self.mark_colors,
                              cross=False, thickness=2)
         draw_measurement(cam, self.run.meas.get(stamp, {}), GREEN,
                          {n: YELLOW for n in self.mark_colors}, cross=True)
+        if cam.shape[:2] != (self.H, self.W):  # the overlays are in the image's pixels
+            cam = cv2.resize(cam, (self.W, self.H), interpolation=cv2.INTER_AREA)
         err = self.err[k]
         state = self.run.states.get(stamp, '')
         lost = stamp in self.run.meas and not self.run.meas[stamp]
@@ -277,9 +294,14 @@ def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None =
     import imageio_ffmpeg
     t0 = time.monotonic()
     fps = float(fps or run.frame_rate())
-    drawer = FrameDrawer(run, target_kind)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = prepare_output(out)
+    if gif is not None:
+        gif = prepare_output(gif)
+    frames = iter_frames(run)
+    first = next(frames, None)  # the frame's size, and a bag whose images fail, refused
+    if first is None:           # before anything is written
+        raise BagError(f'{run.path}: none of the images of the run could be read back')
+    drawer = FrameDrawer(run, target_kind, size=first[2].shape[1::-1])
     writer = imageio_ffmpeg.write_frames(
         str(out), drawer.size, fps=fps, codec='libx264', pix_fmt_in='rgb24',
         pix_fmt_out='yuv420p', quality=None, macro_block_size=1,
@@ -288,21 +310,40 @@ def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None =
     bar = ProgressBar(len(run.frames), 'video') if progress else None
     n = 0
     try:
-        for k, stamp, img in iter_frames(run):
+        for k, stamp, img in itertools.chain([first], frames):
             writer.send(np.ascontiguousarray(drawer.draw(k, stamp, img)))
             n += 1
             if bar:
                 bar.update(n)
-    finally:
         writer.close()
-    if n != len(run.frames):
-        raise BagError(f'{run.path}: {len(run.frames) - n} of the images of the run could '
-                       'not be read back')
+        if n != len(run.frames):
+            raise BagError(f'{run.path}: {len(run.frames) - n} of the images of the run '
+                           'could not be read back')
+    except BaseException:
+        writer.close()
+        out.unlink(missing_ok=True)  # no video rather than a part of one
+        raise
     res = VideoResult(out, n, fps, drawer.size, 0.0, drawer.goal)
     if gif is not None:
         res.gif = make_gif(out, Path(gif))
     res.seconds = time.monotonic() - t0
     return res
+
+
+def prepare_output(path) -> Path:
+    """
+    Return the output file ``path``, its directory made; OSError saying why it cannot be.
+
+    Refused: an existing directory, a path under a file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise OSError(f'output {path} is a directory, not a file')
+    parent = next((p for p in path.parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise OSError(f'output {path}: {parent} is a file, not a directory')
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def make_gif(video: Path, gif: Path, fps: float = 10.0, scale: float = 0.5,
