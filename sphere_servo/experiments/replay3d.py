@@ -21,7 +21,8 @@ when its target is not the one the bag's measurements saw (a mark it does not ha
 sphere of another radius: the measured ``r_delta`` times the ground-truth distance). The
 desired camera is the taught image's ground-truth pose, else the scenario's ``desired_cMo``.
 
-A recorded joint state that no arm can be in (not one finite number per joint, or beyond
+Images stamped 0 (unset) are refused: the frames could not be told apart. A recorded joint
+state that no arm can be in (not one finite number per joint, or beyond
 the URDF's position limits) is left out like a lost one (no key) and the tool says how many.
 
 What is drawn is the scene's markers (:meth:`Scene.markers`, what RViz or Foxglove will
@@ -47,7 +48,7 @@ from sphere_servo.bag.bagio import BagError
 from sphere_servo.bag.offline import load_settings
 from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, read_run, Run,
                                   run_scene)
-from sphere_servo.experiments.video import prepare_output
+from sphere_servo.experiments.video import check_stamps, prepare_output, unrecorded_iterations
 from sphere_servo.pipeline.arm_sim import sim_arm
 from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, package_dirs, PACKAGE_SCHEME,
                                     resolve_uri, Scene, SceneError)
@@ -345,6 +346,7 @@ def main(argv=None) -> int:
     from sphere_servo.pipeline.config import ConfigError
     try:
         run = read_run(opts.bag, load_settings(opts.config), every_image=opts.every_image)
+        check_stamps(run)
         params = load_arm_params(opts.config)
         arm = sim_arm(params)
         run, invalid = valid_joints(run, arm.model)
@@ -359,14 +361,16 @@ def main(argv=None) -> int:
         path, figs = make_replay(run, scene, out, invalid)
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('replay3d', err)
-    invalid = figs['invalid']
+    invalid, unrecorded = figs['invalid'], unrecorded_iterations(run)
     missing = figs['frames'] - figs['posed']
     print(f'replay3d: {figs["frames"]} frames ({figs["duration"]:.1f} s at {figs["fps"]:g} '
           f'fps) in {figs["seconds"]:.1f} s'
           + (f'; {missing} frames have no recorded joint state (interpolated)' if missing
              else '')
           + (f'; {invalid} invalid joint states (non-finite, wrong size or beyond the joint '
-             'limits) left out' if invalid else ''))
+             'limits) left out' if invalid else '')
+          + (f'; the servo counted {unrecorded} more iterations, whose servo/state the bag '
+             'does not have (not in the page)' if unrecorded else ''))
     print(f'  {path} ({figs["bytes"] / 1e6:.1f} MB)')
     return 0
 

@@ -23,8 +23,14 @@ twist's translation (m/s) and rotation (deg/s) in the camera frame, up to that f
 Writes H.264 (``yuv420p``, CRF 20) with the ffmpeg that ``imageio-ffmpeg`` ships, to
 ``OUT`` (default: ``servo.mp4`` beside the bag directory, i.e. ``runs/<ts>/servo.mp4``);
 ``--gif`` also writes a small GIF (10 fps, half size, 128 colours; default ``servo.gif``
-beside OUT). Exit code 0 when the video was written, 1 (one line on stderr) when the bag
-cannot be read or has no images.
+beside OUT). Exit code 0 when the video was written, 1 (one line on stderr, and no video
+left behind) when it was not: the bag cannot be read, has no images, images that are not
+raw (``sensor_msgs/msg/Image``, 8-bit) or not stamped (stamp 0: they cannot be told apart),
+measurements of a mark the ``--config`` target has not, a frame rate out of
+:data:`FPS_RANGE`, or the output cannot be written. The overlays are drawn in each image's
+own pixels (the measurements'), whatever ``camera_info`` says; the frame has the first
+image's size. When the servo counted more iterations than the bag has states for (the
+recorder lost some), the tool says how many are not in the video.
 """
 from __future__ import annotations
 
@@ -39,14 +45,17 @@ import time
 import cv2
 import numpy as np
 
-from sphere_servo.bag.bagio import BagError
+from sphere_servo.bag.bagio import bag, BagError
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
 from sphere_servo.bag.run import cli_error, iter_frames, output_path, read_run, Run
 from sphere_servo.core.targets import make_target
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
+IMAGE_TYPE = 'sensor_msgs/msg/Image'
 LEGEND_H = 26  # px above the plots, for the overlay's legend
 CRF = 20
+#: the frame rates written (ffmpeg rounds a rate to a fraction of denominator <= 10^6)
+FPS_RANGE = (0.01, 1000.0)
 
 
 class ProgressBar:
@@ -212,6 +221,7 @@ class VideoResult:
     seconds: float
     desired: str
     gif: Path | None = None
+    unrecorded: int = 0
 
 
 class FrameDrawer:
@@ -288,12 +298,34 @@ class FrameDrawer:
         return out
 
 
+def check_stamps(run: Run) -> None:
+    """
+    Refuse (BagError) a run with images stamped 0 or before (unset, as ROS tools read it).
+
+    The frames are told apart by their stamps: unstamped images would all be one frame.
+    """
+    if run.frames[0] <= 0:
+        raise BagError(f'{run.path}: images on {run.image_topic} are stamped '
+                       f'{run.frames[0] * 1e-9:g} s (unset): the frames of the run cannot be '
+                       'told apart')
+
+
+def check_image_type(run: Run) -> None:
+    """Refuse (BagError) a run whose image topic holds other than ``sensor_msgs/msg/Image``."""
+    with bag(run.path) as reader:
+        types = {c.msgtype for c in reader.connections if c.topic == run.image_topic}
+    if types - {IMAGE_TYPE}:
+        raise BagError(f'{run.path}: {run.image_topic} holds {", ".join(sorted(types))}: the '
+                       f'video needs raw images ({IMAGE_TYPE})')
+
+
 def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None = None,
                target_kind: str = 'special', progress: bool = True) -> VideoResult:
     """Write the H.264 video (and the GIF if ``gif``) of ``run``; see the module docstring."""
     import imageio_ffmpeg
     t0 = time.monotonic()
-    fps = float(fps or run.frame_rate())
+    fps = check_fps(fps, 'fps') if fps else \
+        check_fps(run.frame_rate(), "the frames' rate", ': give --fps')
     out = prepare_output(out)
     if gif is not None:
         gif = prepare_output(gif)
@@ -323,11 +355,30 @@ def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None =
         writer.close()
         out.unlink(missing_ok=True)  # no video rather than a part of one
         raise
-    res = VideoResult(out, n, fps, drawer.size, 0.0, drawer.goal)
+    res = VideoResult(out, n, fps, drawer.size, 0.0, drawer.goal,
+                      unrecorded=unrecorded_iterations(run))
     if gif is not None:
         res.gif = make_gif(out, Path(gif))
     res.seconds = time.monotonic() - t0
     return res
+
+
+def check_fps(fps: float, what: str, hint: str = '') -> float:
+    """Return ``fps`` if it is a frame rate ffmpeg writes (:data:`FPS_RANGE`), else BagError."""
+    lo, hi = FPS_RANGE
+    if not (np.isfinite(fps) and lo <= fps <= hi):
+        raise BagError(f'{what} must be a number of frames a second in [{lo:g}, {hi:g}], got '
+                       f'{fps:g}{hint}')
+    return float(fps)
+
+
+def unrecorded_iterations(run: Run) -> int:
+    """
+    Count the servo's iterations (its last recorded ``iteration``) that are not frames.
+
+    The images whose ``servo/state`` the recorder lost (or a recording started late).
+    """
+    return max(0, (run.iterations or 0) - len(run.frames))
 
 
 def prepare_output(path) -> Path:
@@ -380,10 +431,12 @@ def main(argv=None) -> int:
     opts = parse_args(list(sys.argv[1:] if argv is None else argv))
     from sphere_servo.pipeline.config import ConfigError
     try:
-        if opts.fps is not None and not (np.isfinite(opts.fps) and opts.fps > 0):
-            raise BagError(f'--fps must be a number > 0, got {opts.fps}')
+        if opts.fps is not None:
+            check_fps(opts.fps, '--fps')
         settings = load_settings(opts.config)
         run = read_run(opts.bag, settings, opts.image_topic, opts.every_image)
+        check_image_type(run)
+        check_stamps(run)
         out = output_path(opts.bag, opts.output, 'servo.mp4')
         gif = None if opts.gif is None else (Path(opts.gif) if opts.gif
                                              else out.with_suffix('.gif'))
@@ -392,7 +445,9 @@ def main(argv=None) -> int:
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('video', err)
     print(f'video: {res.frames} frames ({res.size[0]}x{res.size[1]}, {res.fps:g} fps), '
-          f'{res.desired}, in {res.seconds:.1f} s')
+          f'{res.desired}, in {res.seconds:.1f} s'
+          + (f'; the servo counted {res.unrecorded} more iterations, whose servo/state the '
+             'bag does not have (not in the video)' if res.unrecorded else ''))
     print(f'  {res.path} ({res.path.stat().st_size / 1e6:.2f} MB)')
     if res.gif is not None:
         print(f'  {res.gif} ({res.gif.stat().st_size / 1e6:.2f} MB)')
