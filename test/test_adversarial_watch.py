@@ -22,8 +22,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from run_bag import run_bag
-from sphere_servo.bag.run import read_run
+from sphere_servo.bag.run import load_arm_params, read_run
 from sphere_servo.experiments import replay3d, video
+from sphere_servo.sim.arm import pose_from_xyz_rpy
 from test_markers import Geometry
 from test_replay3d import _commands
 from test_video import _decode, goal_ring, sphere_centre
@@ -94,11 +95,19 @@ def check_page(page: Path, run, valid: dict, geometry) -> None:
     for i in range(7):
         got = keys[f'/meshcat/robot/{i}']
         assert sorted(got) == want
+    assert sorted(keys['/meshcat/camera/0']) == want
+    tp = load_arm_params('special_sphere').target_pose
+    wMo = pose_from_xyz_rpy(tp[:3], tp[3:])
+    st_of = {k: st for st, k in index.items()}
     worst = 0.0
     for k in want[::max(1, len(want) // 25)] + [want[-1]]:
         for i, M in enumerate(geometry.placements(by_k[k])):
             worst = max(worst, float(np.max(np.abs(
                 keys[f'/meshcat/robot/{i}'][k].homogeneous - M.homogeneous))))
+        if st_of[k] in run.oMc:  # the camera where the recorded ground truth has it
+            worst = max(worst, float(np.max(np.abs(
+                keys['/meshcat/camera/0'][k].homogeneous
+                - (wMo * run.oMc[st_of[k]]).homogeneous))))
     assert worst < 1e-5, worst
 
 

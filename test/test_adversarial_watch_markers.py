@@ -10,6 +10,8 @@ quaternion of unit norm. A marker that is not finite never reaches the wire.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -131,3 +133,43 @@ def test_a_scene_with_nan_state_sends_no_nan(scene):
     assert [(m.ns, m.id) for m in arr.markers[1:]] == [(s.ns, s.id) for s in good]
     for m in arr.markers[1:]:
         assert np.all(np.isfinite(_numbers(m)))
+
+
+SCENARIOS = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / 'config'
+                                    / 'scenarios').glob('*.yaml'))
+
+
+@pytest.mark.parametrize('name', SCENARIOS)
+def test_every_scenarios_scene_is_finite_and_its_frustum_meets_the_corners(name):
+    """
+    The scene of each scenario (pinhole, fisheye, catadioptric, CC target, balloon).
+
+    Every number finite, every quaternion unit; the frustum's far points project (the
+    scenario's camera model) onto the image corners, or, for a corner beyond a wide
+    camera's field, onto the segment from the principal point to it.
+    """
+    p = ArmSimParams.from_mapping(section(load_node_params(name), 'arm_sim'))
+    scene = sim_scene(p)
+    cam = scene.camera
+    W, H = cam.width, cam.height
+    corners = np.array([[0, 0], [W, 0], [W, H], [0, H]], float) - 0.5
+    centre = np.array([cam.u0, cam.v0])
+    for q in (np.asarray(p.start_joints, float), np.zeros(6)):
+        arr = marker_array(scene.markers(q), Header(frame_id='world'))
+        for m in arr.markers[1:]:
+            assert np.all(np.isfinite(_numbers(m))), (name, m.ns, m.id)
+            o = m.pose.orientation
+            assert abs(np.linalg.norm([o.x, o.y, o.z, o.w]) - 1.0) < 1e-12
+        (camera,) = [m for m in arr.markers if m.ns == 'camera']
+        pts = np.array([[pt.x, pt.y, pt.z] for pt in camera.points])
+        far = pts[1:8:2]  # the 4 apex edges' far ends, in corner order
+        np.testing.assert_allclose(pts[0:8:2], 0.0)
+        uv = cam.project(far)
+        _, ok = cam.lift_where(corners)
+        for c, got, lifts in zip(corners, uv, ok):
+            if lifts:
+                np.testing.assert_allclose(got, c, atol=1e-6)
+            else:  # pulled toward the principal point, along the line to the corner
+                d, g = c - centre, got - centre
+                assert abs(d[0] * g[1] - d[1] * g[0]) < 1e-6 * np.linalg.norm(d) ** 2
+                assert 0 < g @ d < d @ d, (name, c, got)
