@@ -471,3 +471,20 @@ def test_a_servo_state_whose_error_norm_is_not_a_number(recorded, tmp_path):
         return m
     b = rewrite(recorded.bag, tmp_path / 'bag', on('/servo/state', garble))
     refused(video, [b, '--quiet'], tmp_path / 'v.mp4', 'servo/state')
+
+
+def test_measurements_that_cannot_be_drawn(recorded, tmp_path):
+    """A negative ellipse axis, marks 1e20 px away: those left out (before: cv2.error)."""
+    run0 = read_run(recorded.bag)
+    spoilt = {run0.frames[10]: {'ellipse_major': -10.0, 'ellipse_angle': 1e30},
+              run0.frames[20]: {'P1_u': 1e20, 'P2_v': -5e9}}
+
+    def spoil(m):
+        m.position = np.array(m.position)
+        for name, value in spoilt.get(stamp(m), {}).items():
+            m.position[m.name.index(name)] = value
+        return m
+    b = rewrite(recorded.bag, tmp_path / 'bag', on('/detector/measurement', spoil))
+    code, _, err = run_tool(video, [b, '-o', tmp_path / 'v.mp4', '--quiet'])
+    assert code == 0, err
+    assert len(_decode(tmp_path / 'v.mp4')) == recorded.iterations

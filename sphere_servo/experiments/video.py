@@ -52,6 +52,8 @@ from sphere_servo.core.targets import make_target
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
 IMAGE_TYPE = 'sensor_msgs/msg/Image'
+#: pixels (or degrees) beyond which a recorded value is not drawn (OpenCV refuses it)
+DRAW_LIMIT = 1e6
 LEGEND_H = 26  # px above the plots, for the overlay's legend
 CRF = 20
 #: the frame rates written (ffmpeg rounds a rate to a fraction of denominator <= 10^6)
@@ -85,6 +87,11 @@ class ProgressBar:
         self.stream.flush()
 
 
+def _drawable(*values) -> bool:
+    """Tell whether numbers can be drawn: finite, within :data:`DRAW_LIMIT` of 0."""
+    return all(np.isfinite(x) and abs(x) <= DRAW_LIMIT for x in values)
+
+
 def draw_measurement(img: np.ndarray, values: dict, ring, marks: dict, cross: bool,
                      thickness: int = 1) -> None:
     """
@@ -92,7 +99,8 @@ def draw_measurement(img: np.ndarray, values: dict, ring, marks: dict, cross: bo
 
     The ellipse (``ellipse_u ellipse_v ellipse_major ellipse_minor ellipse_angle``, pixels
     and degrees) in colour ``ring``; each mark ``M_u M_v`` as a cross (``cross``) or a
-    circle, in the colour ``marks[M]``.
+    circle, in the colour ``marks[M]``. What cannot be drawn (not finite, beyond
+    :data:`DRAW_LIMIT`, a negative axis) is left out.
     """
     if not values:
         return
@@ -101,11 +109,11 @@ def draw_measurement(img: np.ndarray, values: dict, ring, marks: dict, cross: bo
                (values['ellipse_major'], values['ellipse_minor']), values['ellipse_angle'])
     except KeyError:
         box = None
-    if box is not None and all(np.isfinite(np.ravel(box[0] + box[1] + (box[2],)))):
+    if box is not None and _drawable(*box[0], *box[1], box[2]) and min(box[1]) >= 0:
         cv2.ellipse(img, box, ring, thickness, cv2.LINE_AA)
     for name, color in marks.items():
         u, v = values.get(f'{name}_u'), values.get(f'{name}_v')
-        if u is None or v is None or not (np.isfinite(u) and np.isfinite(v)):
+        if u is None or v is None or not _drawable(u, v):
             continue
         c = (int(round(u)), int(round(v)))
         if cross:
