@@ -134,6 +134,18 @@ def scenario(where: Path, name: str, arm_sim: str) -> Path:
     return cfg
 
 
+def refused(mod, argv, out: Path, text: str) -> str:
+    """Assert a tool refuses: exit 1, one line on stderr naming ``text``, no output file."""
+    code, stdout, err = run_tool(mod, [*argv, '-o', out])
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    prog = mod.__name__.rpartition('.')[2]
+    assert code == 1, f'exit {code}: {stdout} {err}'
+    assert len(lines) == 1 and lines[0].startswith(f'{prog}: error:'), err
+    assert text in lines[0], lines[0]
+    assert not out.exists() and 'Traceback' not in stdout + err
+    return lines[0]
+
+
 def run_tool(mod, argv) -> tuple[int, str, str]:
     """Run a tool's ``main`` on ``argv``: (exit code, stdout, stderr)."""
     out, err = io.StringIO(), io.StringIO()
