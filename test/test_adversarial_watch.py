@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 import shutil
 
+from browser import load
 import cv2
 import numpy as np
 import pinocchio as pin
@@ -170,6 +171,9 @@ def test_invalid_joint_states_are_left_out(recorded, geometry, tmp_path):
     run = read_run(b)
     valid = {st: q for st, q in zip(run0.frames, recorded.frames_q) if st not in bad}
     check_page(tmp_path / 'r.html', run, valid, geometry)
+    # and it runs in a real browser, without a JavaScript exception
+    seen = load((tmp_path / 'r.html').as_uri())
+    assert seen.loaded and seen.exceptions == [], seen.exceptions[:2]
 
 
 @pytest.mark.xfail(strict=True, reason='bag/run.py read_run keeps the joint names of the '
