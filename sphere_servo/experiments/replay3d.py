@@ -16,8 +16,14 @@ The geometry is :class:`sphere_servo.sim.scene.Scene`'s, for the ``arm_sim`` par
 the scenario the run used (``--config``, default ``special_sphere``: hand-eye transform,
 target pose and target; :func:`sphere_servo.bag.run.run_scene`); the page is refused when
 the bag's ground truth ``ground_truth/camera_pose`` and that arm disagree (another scene
-recorded it). The desired camera is the taught image's ground-truth pose, else the
-scenario's ``desired_cMo``.
+recorded it), when its camera is not the bag's ``camera_info`` (size and intrinsics), or
+when the bag's measurements see a mark its target does not have (:func:`check_scenario`;
+a target of another size or shape is not seen). The desired camera is the taught image's
+ground-truth pose, else the scenario's ``desired_cMo``.
+
+Images stamped 0 (unset) are refused: the frames could not be told apart. A recorded joint
+state that no arm can be in (not one finite number per joint, or beyond the URDF's
+position limits) is left out like a lost one (no key) and the tool says how many.
 
 What is drawn is the scene's markers (:meth:`Scene.markers`, what RViz or Foxglove will
 show of a live run), each at ``/meshcat/<namespace>/<id>``. The page's address may carry
@@ -29,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import dataclasses
 from pathlib import Path
 import sys
 import time
@@ -41,6 +48,8 @@ from sphere_servo.bag.bagio import BagError
 from sphere_servo.bag.offline import load_settings
 from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, read_run, Run,
                                   run_scene)
+from sphere_servo.experiments.video import check_stamps, prepare_output, unrecorded_iterations
+from sphere_servo.pipeline.arm_sim import sim_arm
 from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, package_dirs, PACKAGE_SCHEME,
                                     resolve_uri, Scene, SceneError)
 
@@ -49,6 +58,8 @@ MOVING = ('robot', 'camera')
 #: where the page's viewer camera starts, world frame (m), looking at the world origin
 VIEW_FROM = (1.0, 0.8, 0.6)
 MAX_PATH_SEGMENTS = 120
+#: a joint state further than this (rad) beyond a URDF position limit is not the arm's
+LIMIT_TOL = 1e-6
 
 
 class Recorder:
@@ -80,6 +91,48 @@ def robot_meshes(scene: Scene) -> dict[Path, object]:
     except (RuntimeError, ValueError) as exc:
         raise SceneError(f'cannot load the meshes of {scene.arm.urdf_path}: {exc}') from None
     return {Path(g.meshPath).resolve(): g.geometry for g in geom.geometryObjects}
+
+
+def valid_joints(run: Run, model) -> tuple[Run, int]:
+    """
+    Return ``run`` without the joint states the arm cannot be in, and how many they were.
+
+    Kept: one finite number per joint of ``model`` (a Pinocchio model), each within its
+    position limits (:data:`LIMIT_TOL`). The others are left out as a lost one is.
+    """
+    lo, hi = model.lowerPositionLimit - LIMIT_TOL, model.upperPositionLimit + LIMIT_TOL
+    good = {st: q for st, q in run.joints.items()
+            if q.shape == (model.nq,) and np.all(np.isfinite(q)) and np.all(lo <= q)
+            and np.all(q <= hi)}
+    return dataclasses.replace(run, joints=good), len(run.joints) - len(good)
+
+
+def check_scenario(run: Run, scene: Scene) -> None:
+    """
+    Refuse (BagError) a scene whose camera or target is not the one the bag recorded.
+
+    The camera: the bag's first ``camera_info`` (when it reads as a pinhole) against the
+    scene's size and intrinsics (not its distortion model). The target: every mark the
+    recorded measurements name must be one of the scene's. Its size is not checked: the
+    measured ``r_delta`` depends on the detector's intrinsics, off on purpose in the
+    ``calibration_error`` scenario (its own bag measures a 5 cm sphere as 3.8 cm).
+    """
+    cam, rec = scene.camera, run.camera
+    if rec is not None:
+        mine = (cam.width, cam.height, cam.px, cam.py, cam.u0, cam.v0)
+        theirs = (rec.width, rec.height, rec.px, rec.py, rec.u0, rec.v0)
+        if not np.allclose(mine, theirs, rtol=1e-6, atol=1e-6):
+            raise BagError(f"{run.path}: the bag's camera_info ({rec.width}x{rec.height}, "
+                           f'px={rec.px:g}) is not the camera of this scenario ({cam.width}x'
+                           f'{cam.height}, px={cam.px:g}): give --config the run was '
+                           'recorded with')
+    names = {k[:-2] for m in run.meas.values() for k in m
+             if k.endswith('_u') and k != 'ellipse_u'}
+    if names - set(scene.target.marks):
+        raise BagError(f"{run.path}: the bag's measurements see marks "
+                       f'{", ".join(sorted(names - set(scene.target.marks)))} that the target '
+                       f'of this scenario has not ({", ".join(scene.target.marks)}): give '
+                       '--config the run was recorded with')
 
 
 def _mesh(spec: MarkerSpec, meshes: dict):
@@ -236,23 +289,33 @@ def write_page(commands: list[bytes], out: Path, title: str, info: str) -> Path:
     return out
 
 
-def make_replay(run: Run, scene: Scene, out: Path) -> tuple[Path, dict]:
-    """Write the replay page of ``run`` in ``scene``; return its path and a few figures."""
+def make_replay(run: Run, scene: Scene, out: Path, invalid: int = 0) -> tuple[Path, dict]:
+    """
+    Write the replay page of ``run`` in ``scene``; return its path and a few figures.
+
+    Joint states the arm cannot be in are left out (:func:`valid_joints`); figure
+    ``invalid``: how many, ``invalid`` (those the caller left out already) included.
+    """
     import html
     t0 = time.monotonic()
+    run, more = valid_joints(run, scene.model)
+    invalid += more
     fps = run.frame_rate()
     commands, duration = build_commands(scene, run, fps)
     d = run.desired
     posed = sum(st in run.joints for st in run.frames)
     lost = '' if posed == len(run.frames) else \
         f' ({len(run.frames) - posed} without a recorded joint state: interpolated)'
+    if invalid:
+        lost += f' ({invalid} invalid joint states left out)'
     info = (f'<b>{html.escape(run.path.parent.name or str(run.path))}</b>: '
             f'{len(run.frames)} frames{lost}, {duration:.1f} s. Orange: camera and its frustum; '
             f'yellow: its path; green: the desired camera'
             + (f' ({html.escape(d.how)} image)' if d else ' (scenario)') +
             '. Play / pause / time: <i>Animations</i>, top right.')
     path = write_page(commands, out, f'replay: {run.path}', info)
-    return path, {'frames': len(run.frames), 'posed': posed, 'duration': duration, 'fps': fps,
+    return path, {'frames': len(run.frames), 'posed': posed, 'invalid': invalid,
+                  'duration': duration, 'fps': fps,
                   'seconds': time.monotonic() - t0, 'bytes': path.stat().st_size}
 
 
@@ -272,16 +335,31 @@ def main(argv=None) -> int:
     from sphere_servo.pipeline.config import ConfigError
     try:
         run = read_run(opts.bag, load_settings(opts.config), every_image=opts.every_image)
-        scene = run_scene(run, load_arm_params(opts.config))
-        out = output_path(opts.bag, opts.output, 'replay.html')
-        path, figs = make_replay(run, scene, out)
+        check_stamps(run)
+        params = load_arm_params(opts.config)
+        arm = sim_arm(params)
+        run, invalid = valid_joints(run, arm.model)
+        if invalid and not run.joints:
+            raise BagError(f'{opts.bag}: none of its {invalid} joint states is one the UR5 '
+                           f'can be in ({arm.model.nq} finite positions within its limits, '
+                           f'named {", ".join(arm.joint_names)}; the bag names '
+                           f'{", ".join(run.joint_names)})')
+        scene = run_scene(run, params)
+        check_scenario(run, scene)
+        out = prepare_output(output_path(opts.bag, opts.output, 'replay.html'))
+        path, figs = make_replay(run, scene, out, invalid)
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('replay3d', err)
+    invalid, unrecorded = figs['invalid'], unrecorded_iterations(run)
     missing = figs['frames'] - figs['posed']
     print(f'replay3d: {figs["frames"]} frames ({figs["duration"]:.1f} s at {figs["fps"]:g} '
           f'fps) in {figs["seconds"]:.1f} s'
           + (f'; {missing} frames have no recorded joint state (interpolated)' if missing
-             else ''))
+             else '')
+          + (f'; {invalid} invalid joint states (non-finite, wrong size or beyond the joint '
+             'limits) left out' if invalid else '')
+          + (f'; the servo counted {unrecorded} more iterations, whose servo/state the bag '
+             'does not have (not in the page)' if unrecorded else ''))
     print(f'  {path} ({figs["bytes"] / 1e6:.1f} MB)')
     return 0
 

@@ -23,13 +23,20 @@ twist's translation (m/s) and rotation (deg/s) in the camera frame, up to that f
 Writes H.264 (``yuv420p``, CRF 20) with the ffmpeg that ``imageio-ffmpeg`` ships, to
 ``OUT`` (default: ``servo.mp4`` beside the bag directory, i.e. ``runs/<ts>/servo.mp4``);
 ``--gif`` also writes a small GIF (10 fps, half size, 128 colours; default ``servo.gif``
-beside OUT). Exit code 0 when the video was written, 1 (one line on stderr) when the bag
-cannot be read or has no images.
+beside OUT). Exit code 0 when the video was written, 1 (one line on stderr, and no video
+left behind) when it was not: the bag cannot be read, has no images, images that are not
+raw (``sensor_msgs/msg/Image``, 8-bit) or not stamped (stamp 0: they cannot be told apart),
+measurements of a mark the ``--config`` target has not, a frame rate out of
+:data:`FPS_RANGE`, or the output cannot be written. The overlays are drawn in each image's
+own pixels (the measurements'), whatever ``camera_info`` says; the frame has the first
+image's size. When the servo counted more iterations than the bag has states for (the
+recorder lost some), the tool says how many are not in the video.
 """
 from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+import itertools
 from pathlib import Path
 import subprocess
 import sys
@@ -38,14 +45,19 @@ import time
 import cv2
 import numpy as np
 
-from sphere_servo.bag.bagio import BagError
+from sphere_servo.bag.bagio import bag, BagError
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
 from sphere_servo.bag.run import cli_error, iter_frames, output_path, read_run, Run
 from sphere_servo.core.targets import make_target
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
+IMAGE_TYPE = 'sensor_msgs/msg/Image'
+#: pixels (or degrees) beyond which a recorded value is not drawn (OpenCV refuses it)
+DRAW_LIMIT = 1e6
 LEGEND_H = 26  # px above the plots, for the overlay's legend
 CRF = 20
+#: the frame rates written (ffmpeg rounds a rate to a fraction of denominator <= 10^6)
+FPS_RANGE = (0.01, 1000.0)
 
 
 class ProgressBar:
@@ -75,6 +87,11 @@ class ProgressBar:
         self.stream.flush()
 
 
+def _drawable(*values) -> bool:
+    """Tell whether numbers can be drawn: finite, within :data:`DRAW_LIMIT` of 0."""
+    return all(np.isfinite(x) and abs(x) <= DRAW_LIMIT for x in values)
+
+
 def draw_measurement(img: np.ndarray, values: dict, ring, marks: dict, cross: bool,
                      thickness: int = 1) -> None:
     """
@@ -82,7 +99,8 @@ def draw_measurement(img: np.ndarray, values: dict, ring, marks: dict, cross: bo
 
     The ellipse (``ellipse_u ellipse_v ellipse_major ellipse_minor ellipse_angle``, pixels
     and degrees) in colour ``ring``; each mark ``M_u M_v`` as a cross (``cross``) or a
-    circle, in the colour ``marks[M]``.
+    circle, in the colour ``marks[M]``. What cannot be drawn (not finite, beyond
+    :data:`DRAW_LIMIT`, a negative axis) is left out.
     """
     if not values:
         return
@@ -91,11 +109,11 @@ def draw_measurement(img: np.ndarray, values: dict, ring, marks: dict, cross: bo
                (values['ellipse_major'], values['ellipse_minor']), values['ellipse_angle'])
     except KeyError:
         box = None
-    if box is not None and all(np.isfinite(np.ravel(box[0] + box[1] + (box[2],)))):
+    if box is not None and _drawable(*box[0], *box[1], box[2]) and min(box[1]) >= 0:
         cv2.ellipse(img, box, ring, thickness, cv2.LINE_AA)
     for name, color in marks.items():
         u, v = values.get(f'{name}_u'), values.get(f'{name}_v')
-        if u is None or v is None or not (np.isfinite(u) and np.isfinite(v)):
+        if u is None or v is None or not _drawable(u, v):
             continue
         c = (int(round(u)), int(round(v)))
         if cross:
@@ -211,20 +229,37 @@ class VideoResult:
     seconds: float
     desired: str
     gif: Path | None = None
+    unrecorded: int = 0
 
 
 class FrameDrawer:
-    """Compose the video frames of a run (camera image with overlays | plot panel)."""
+    """
+    Compose the video frames of a run (camera image with overlays | plot panel).
 
-    def __init__(self, run: Run, target_kind: str = 'special'):
-        if run.camera is not None:
+    The overlays are drawn on each image at its own size (the measurements are in its
+    pixels), then the image is scaled to the frame's: ``size`` (W, H) of the run's first
+    image, else the ``camera_info``'s, else 640 × 480. BagError when the recorded
+    measurements see a mark the target of ``target_kind`` does not have (another scenario).
+    """
+
+    def __init__(self, run: Run, target_kind: str = 'special', size: tuple | None = None):
+        if size is not None:
+            W, H = (int(x) for x in size)
+        elif run.camera is not None:
             W, H = run.camera.width, run.camera.height
         else:
             W, H = 640, 480
         self.run, self.W, self.H = run, W, H
-        colors = make_target(target_kind).colors
-        names = ('P1', 'P3') if target_kind == 'cc' else ('P1', 'P2')
+        target = make_target(target_kind)
+        colors, names = target.colors, target.mark_names
         self.mark_colors = {n: colors.get(n, colors['P2']) for n in names}
+        seen = {k[:-2] for m in run.meas.values() for k in m
+                if k.endswith('_u') and k != 'ellipse_u'}
+        if seen - set(names):
+            raise BagError(f'{run.path}: the measurements see marks '
+                           f'{", ".join(sorted(seen - set(names)))} that a {target_kind} '
+                           f'target has not ({", ".join(names)}): give --config the run was '
+                           'recorded with')
         n = len(run.frames)
         self.err = run.series(run.error_norm, 1)[:, 0]
         self.twist = run.series(run.twists, 6)
@@ -248,14 +283,14 @@ class FrameDrawer:
 
     def draw(self, k: int, stamp: int, img: np.ndarray) -> np.ndarray:
         """Compose the video frame ``k`` (rgb8, :attr:`size`) of the image stamped ``stamp``."""
-        if img.shape[:2] != (self.H, self.W):
-            img = cv2.resize(img, (self.W, self.H), interpolation=cv2.INTER_AREA)
         cam = img.copy()
         if self.run.desired is not None:
             draw_measurement(cam, self.run.desired.values, MAGENTA, self.mark_colors,
                              cross=False, thickness=2)
         draw_measurement(cam, self.run.meas.get(stamp, {}), GREEN,
                          {n: YELLOW for n in self.mark_colors}, cross=True)
+        if cam.shape[:2] != (self.H, self.W):  # the overlays are in the image's pixels
+            cam = cv2.resize(cam, (self.W, self.H), interpolation=cv2.INTER_AREA)
         err = self.err[k]
         state = self.run.states.get(stamp, '')
         lost = stamp in self.run.meas and not self.run.meas[stamp]
@@ -271,15 +306,42 @@ class FrameDrawer:
         return out
 
 
+def check_stamps(run: Run) -> None:
+    """
+    Refuse (BagError) a run with images stamped 0 or before (unset, as ROS tools read it).
+
+    The frames are told apart by their stamps: unstamped images would all be one frame.
+    """
+    if run.frames[0] <= 0:
+        raise BagError(f'{run.path}: images on {run.image_topic} are stamped '
+                       f'{run.frames[0] * 1e-9:g} s (unset): the frames of the run cannot be '
+                       'told apart')
+
+
+def check_image_type(run: Run) -> None:
+    """Refuse (BagError) a run whose image topic holds other than ``sensor_msgs/msg/Image``."""
+    with bag(run.path) as reader:
+        types = {c.msgtype for c in reader.connections if c.topic == run.image_topic}
+    if types - {IMAGE_TYPE}:
+        raise BagError(f'{run.path}: {run.image_topic} holds {", ".join(sorted(types))}: the '
+                       f'video needs raw images ({IMAGE_TYPE})')
+
+
 def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None = None,
                target_kind: str = 'special', progress: bool = True) -> VideoResult:
     """Write the H.264 video (and the GIF if ``gif``) of ``run``; see the module docstring."""
     import imageio_ffmpeg
     t0 = time.monotonic()
-    fps = float(fps or run.frame_rate())
-    drawer = FrameDrawer(run, target_kind)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    fps = check_fps(fps, 'fps') if fps else \
+        check_fps(run.frame_rate(), "the frames' rate", ': give --fps')
+    out = prepare_output(out)
+    if gif is not None:
+        gif = prepare_output(gif)
+    frames = iter_frames(run)
+    first = next(frames, None)  # the frame's size, and a bag whose images fail, refused
+    if first is None:           # before anything is written
+        raise BagError(f'{run.path}: none of the images of the run could be read back')
+    drawer = FrameDrawer(run, target_kind, size=first[2].shape[1::-1])
     writer = imageio_ffmpeg.write_frames(
         str(out), drawer.size, fps=fps, codec='libx264', pix_fmt_in='rgb24',
         pix_fmt_out='yuv420p', quality=None, macro_block_size=1,
@@ -288,21 +350,59 @@ def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None =
     bar = ProgressBar(len(run.frames), 'video') if progress else None
     n = 0
     try:
-        for k, stamp, img in iter_frames(run):
+        for k, stamp, img in itertools.chain([first], frames):
             writer.send(np.ascontiguousarray(drawer.draw(k, stamp, img)))
             n += 1
             if bar:
                 bar.update(n)
-    finally:
         writer.close()
-    if n != len(run.frames):
-        raise BagError(f'{run.path}: {len(run.frames) - n} of the images of the run could '
-                       'not be read back')
-    res = VideoResult(out, n, fps, drawer.size, 0.0, drawer.goal)
+        if n != len(run.frames):
+            raise BagError(f'{run.path}: {len(run.frames) - n} of the images of the run '
+                           'could not be read back')
+    except BaseException:
+        writer.close()
+        out.unlink(missing_ok=True)  # no video rather than a part of one
+        raise
+    res = VideoResult(out, n, fps, drawer.size, 0.0, drawer.goal,
+                      unrecorded=unrecorded_iterations(run))
     if gif is not None:
         res.gif = make_gif(out, Path(gif))
     res.seconds = time.monotonic() - t0
     return res
+
+
+def check_fps(fps: float, what: str, hint: str = '') -> float:
+    """Return ``fps`` if it is a frame rate ffmpeg writes (:data:`FPS_RANGE`), else BagError."""
+    lo, hi = FPS_RANGE
+    if not (np.isfinite(fps) and lo <= fps <= hi):
+        raise BagError(f'{what} must be a number of frames a second in [{lo:g}, {hi:g}], got '
+                       f'{fps:g}{hint}')
+    return float(fps)
+
+
+def unrecorded_iterations(run: Run) -> int:
+    """
+    Count the servo's iterations (its last recorded ``iteration``) that are not frames.
+
+    The images whose ``servo/state`` the recorder lost (or a recording started late).
+    """
+    return max(0, (run.iterations or 0) - len(run.frames))
+
+
+def prepare_output(path) -> Path:
+    """
+    Return the output file ``path``, its directory made; OSError saying why it cannot be.
+
+    Refused: an existing directory, a path under a file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise OSError(f'output {path} is a directory, not a file')
+    parent = next((p for p in path.parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise OSError(f'output {path}: {parent} is a file, not a directory')
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def make_gif(video: Path, gif: Path, fps: float = 10.0, scale: float = 0.5,
@@ -339,10 +439,12 @@ def main(argv=None) -> int:
     opts = parse_args(list(sys.argv[1:] if argv is None else argv))
     from sphere_servo.pipeline.config import ConfigError
     try:
-        if opts.fps is not None and not (np.isfinite(opts.fps) and opts.fps > 0):
-            raise BagError(f'--fps must be a number > 0, got {opts.fps}')
+        if opts.fps is not None:
+            check_fps(opts.fps, '--fps')
         settings = load_settings(opts.config)
         run = read_run(opts.bag, settings, opts.image_topic, opts.every_image)
+        check_image_type(run)
+        check_stamps(run)
         out = output_path(opts.bag, opts.output, 'servo.mp4')
         gif = None if opts.gif is None else (Path(opts.gif) if opts.gif
                                              else out.with_suffix('.gif'))
@@ -351,7 +453,9 @@ def main(argv=None) -> int:
     except (BagError, ConfigError, ValueError, OSError) as err:
         return cli_error('video', err)
     print(f'video: {res.frames} frames ({res.size[0]}x{res.size[1]}, {res.fps:g} fps), '
-          f'{res.desired}, in {res.seconds:.1f} s')
+          f'{res.desired}, in {res.seconds:.1f} s'
+          + (f'; the servo counted {res.unrecorded} more iterations, whose servo/state the '
+             'bag does not have (not in the video)' if res.unrecorded else ''))
     print(f'  {res.path} ({res.path.stat().st_size / 1e6:.2f} MB)')
     if res.gif is not None:
         print(f'  {res.gif} ({res.gif.stat().st_size / 1e6:.2f} MB)')

@@ -7,11 +7,16 @@ viewer that gets only the latest array (a late subscriber of the latched topic, 
 seeking in a bag) shows the whole scene, and a marker that left the scene (the camera path
 after a jump) leaves the viewer too. A ``MESH_RESOURCE`` marker carries only its URI
 (viewers load and cache the mesh), so re-sending the robot costs a few hundred bytes.
+
+A marker whose pose, scale, colour or points are not finite (or whose rotation has no
+quaternion) is left out of the array: a viewer is never sent a NaN pose (RViz drops such
+a marker with an error; the scene's core refuses the joint states that would make one).
 """
 from __future__ import annotations
 
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import Point, Vector3
+import numpy as np
 from sphere_servo.ros.conversions import pose_from_se3
 from sphere_servo.ros.qos import LATCHED
 from sphere_servo.sim.scene import MarkerKind, MarkerSpec
@@ -22,6 +27,18 @@ WORLD_FRAME = 'world'
 # latched: the last scene reaches a viewer that subscribes later (RViz: Durability Policy
 # "Transient Local"; ``ros2 topic echo --qos-durability transient_local``)
 MARKERS_QOS = LATCHED
+
+
+def finite_spec(spec: MarkerSpec) -> bool:
+    """Tell whether every number of a marker is finite and its rotation has a quaternion."""
+    M = np.asarray(spec.pose.homogeneous, dtype=float)
+    parts = [M, np.asarray(spec.scale, dtype=float), np.asarray(spec.rgba, dtype=float)]
+    if spec.points is not None:
+        parts.append(np.asarray(spec.points, dtype=float))
+    if not all(np.all(np.isfinite(p)) for p in parts):
+        return False
+    R = M[:3, :3]
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0)
 
 
 def marker_msg(spec: MarkerSpec, header: Header) -> Marker:
@@ -41,6 +58,10 @@ def marker_msg(spec: MarkerSpec, header: Header) -> Marker:
 
 
 def marker_array(specs: list[MarkerSpec], header: Header) -> MarkerArray:
-    """Build the scene's array: ``DELETEALL``, then every marker (module docstring)."""
+    """
+    Build the scene's array: ``DELETEALL``, then every marker (module docstring).
+
+    A marker that is not :func:`finite_spec` is left out.
+    """
     return MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)]
-                       + [marker_msg(s, header) for s in specs])
+                       + [marker_msg(s, header) for s in specs if finite_spec(s)])
