@@ -176,10 +176,6 @@ def test_invalid_joint_states_are_left_out(recorded, geometry, tmp_path):
     assert seen.loaded and seen.exceptions == [], seen.exceptions[:2]
 
 
-@pytest.mark.xfail(strict=True, reason='bag/run.py read_run keeps the joint names of the '
-                   'last joint_states only and the positions of each message as they are: '
-                   'a message whose names are in another order is drawn with its positions '
-                   'on the wrong joints (bag/run.py, not in this change)')
 def test_joint_states_are_read_by_name(recorded, geometry, tmp_path):
     """
     Every other joint_states names its joints in reverse order (the last in the model's).

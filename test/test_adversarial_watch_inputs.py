@@ -57,9 +57,6 @@ def test_frame_rates_ffmpeg_cannot_write(recorded, tmp_path, fps):
     refused(video, [recorded.bag, '--quiet', '--fps', fps], tmp_path / 'v.mp4', '--fps')
 
 
-@pytest.mark.xfail(strict=True, reason="bag/run.py read_run: float() of a servo/state's "
-                   'error_norm that is not a number escapes as a ValueError naming neither '
-                   'the topic nor the bag (bag/run.py, not in this change)')
 def test_a_servo_state_whose_error_norm_is_not_a_number(recorded, tmp_path):
     def garble(m):
         for kv in m.status[0].values:

@@ -25,6 +25,7 @@ says so).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from pathlib import Path
 import sys
 
@@ -195,12 +196,27 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
         values = {kv.key: kv.value for kv in m.status[0].values}
         run.states[st] = m.status[0].message
         if 'error_norm' in values:
-            run.error_norm[st] = float(values['error_norm'])
+            try:
+                norm = float(values['error_norm'])
+            except ValueError:
+                norm = math.nan
+            if not (math.isfinite(norm) and norm >= 0.0):
+                raise BagError(f'{path}: /servo/state at {st} ns has error_norm '
+                               f'{values["error_norm"]!r}, not a norm')
+            run.error_norm[st] = norm
         if values.get('iteration', '').isdigit():
             run.iterations = int(values['iteration'])
     for _, m in msgs[JOINTS_TOPIC]:
-        run.joint_names = list(m.name)
-        run.joints[header_ns(m.header)] = np.asarray(m.position, float)
+        names, q = list(m.name), np.asarray(m.position, float)
+        if not run.joint_names:
+            run.joint_names = names
+        elif names != run.joint_names:
+            # a JointState is a named vector: its positions in the first message's order
+            if sorted(names) != sorted(run.joint_names) or len(names) != len(q):
+                raise BagError(f'{path}: joint_states at {header_ns(m.header)} ns name '
+                               f'{names}, the first ones {run.joint_names}')
+            q = q[[names.index(n) for n in run.joint_names]]
+        run.joints[header_ns(m.header)] = q
     run.oMc = {header_ns(m.header): _pose(m) for _, m in msgs[POSE_TOPIC]}
     stamps = list(dict.fromkeys(st for _, st in images))  # re-publications once
     enabled = {st for st, msg in run.states.items() if msg in ITERATION_STATES}
