@@ -312,8 +312,11 @@ def test_a_node_killed_by_a_signal_is_reported_with_its_name(tmp_path):
     run.stop()
 
 
+# SIGHUP as a terminal's hang-up ends a program: its default action, whatever this test
+# process inherited (under nohup, SIGHUP is ignored, and the launcher would live on)
 LAUNCHER_DIES = """
 import io, os, signal, sys, time
+signal.signal(signal.SIGHUP, signal.SIG_DFL)
 from sphere_servo.bringup.processes import Launcher
 from sphere_servo.pipeline.config import scenario
 run = Launcher(scenario('special_sphere'), out=io.StringIO())

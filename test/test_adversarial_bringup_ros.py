@@ -91,6 +91,7 @@ def test_a_second_launcher_on_the_domain_is_refused_and_the_first_runs_on(launch
     log = second.log()
     assert 'already has the node(s)' in log and 'nothing started' in log, log[-3000:]
     assert "['arm_sim', 'detector', 'features', 'servo']" in log
+    assert 'waiting up to' not in log  # they report on /diagnostics: refused at once
     # the second started no node, and the first is untouched
     assert _nodes_of(ros_env['ROS_DOMAIN_ID'], first.popen.pid) == pids
     assert first.popen.poll() is None and 'another pipeline' not in first.log()

@@ -35,8 +35,9 @@ a finite number of seconds > 0, and an environment in which no node could work (
 :func:`~sphere_servo.bringup.processes.check_environment`). A node that exits during the
 start-up or the run ends it at once (exit 3), with that node's exit code and last words.
 Nodes of the pipeline's names already on the domain (another pipeline's: two arms, two
-servos on one set of topics) are waited for as long as a killed process's linger, then
-refused (exit 2, nothing started); two of one name during the run (another pipeline
+servos on one set of topics) are refused (exit 2, nothing started): at once when one of
+them reports on ``/diagnostics`` (it runs), else once they outlast a killed process's
+linger; two of one name during the run (another pipeline
 joined) end it (exit 3). The run (the teach sequence and its jumps) begins once every node
 has reported on ``/diagnostics``; the arm never jumps unless the servo runs.
 """
@@ -64,6 +65,7 @@ RECORD_READY_TIMEOUT = 30.0  # wall s the run waits for the recorder to match ev
 RECORDER_IDLE_TIMEOUT = 8.0  # wall s the end of a run waits for the late messages to come
 STARTUP_TIMEOUT = 60.0       # wall s the nodes have to start (the servo's first state)
 DISCOVERY_WAIT = 1.0         # wall s to hear the nodes already on the domain, before a start
+LIVE_WAIT = 2.5              # wall s to hear one of them on /diagnostics (1 Hz): it runs
 STALE_WAIT = 25.0            # wall s for such nodes to go: Fast DDS drops a killed process's
 #                              participant after its lease (20 s)
 #: what each node builds at start from its parameters: its core refuses what it cannot use
@@ -192,10 +194,15 @@ def run(sc: Scenario, until_converged: bool = False, timeout: float | None = Non
             raise NotStarted(f"the launcher's node cannot be made here, nothing started: "
                              f'{said}') from None
         sup.spin(DISCOVERY_WAIT)  # the nodes already there: another pipeline, or a killed one's
-        if sup.present(watched):
+        # a live node reports on /diagnostics every second: refused at once; a killed
+        # process's leftovers are silent, and waited for until their lease ends
+        live = sup.present(watched) and sup.wait(
+            lambda: set(sup.present(watched)) & sup.heard, LIVE_WAIT)
+        if sup.present(watched) and not live:
             log(f'ROS_DOMAIN_ID {domain or 0} has the node(s) {sup.present(watched)}: waiting '
                 f"up to {STALE_WAIT:g} s for them to go (a killed process's linger)")
-        if sup.present(watched) and not sup.wait(lambda: not sup.present(watched), STALE_WAIT):
+        if live or (sup.present(watched)
+                    and not sup.wait(lambda: not sup.present(watched), STALE_WAIT)):
             raise NotStarted(f'ROS_DOMAIN_ID {domain or 0} already has the node(s) '
                              f'{sup.present(watched)} (another pipeline runs there): nothing '
                              'started; stop it or use another ROS_DOMAIN_ID')
