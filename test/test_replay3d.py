@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import base64
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import redirect_stderr, redirect_stdout
-import io
 from pathlib import Path
 import re
 
@@ -25,6 +23,7 @@ from run_bag import run_bag
 from sphere_servo.bag.run import load_arm_params, read_run
 from sphere_servo.experiments import replay3d
 from sphere_servo.sim.arm import ArmModel, pose_from_xyz_rpy
+from watch_bags import run_tool
 
 SIZE = (1000, 700)
 FOV_DEG = 75.0  # meshcat's default PerspectiveCamera (vertical field of view)
@@ -38,13 +37,7 @@ def recorded(tmp_path_factory):
 
 
 def _run(argv) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        try:
-            code = replay3d.main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
+    return run_tool(replay3d, argv)
 
 
 @pytest.fixture(scope='module')

@@ -217,8 +217,6 @@ def run(node_factory, name: str, args=None) -> None:
             on_exit = getattr(node, 'on_shutdown', None)
             if on_exit is not None:
                 on_exit()
-        if executors is not None:
-            executors.stop_threads()
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
