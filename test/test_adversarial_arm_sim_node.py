@@ -24,23 +24,43 @@ def _moved(probe) -> bool:
     return bool(np.any(np.abs(probe.joints[-1].velocity) > 1e-6))
 
 
-def test_a_command_s_stamp_is_not_judged_a_limit(launch, probe):
+def test_a_lockstep_command_is_judged_by_the_image_it_answers(launch, probe):
     """
-    Limit (pinned): arm_sim judges a command by its arrival, never by its header stamp.
+    In lockstep a command steps only if it answers the image shown, or no image (stamp 0).
 
-    Zero (the servo's watchdog twists), negative, far past and far future stamps are all
-    executed; the watchdog (``cmd_timeout`` after the arrival) is what bounds a stale one.
+    Negative, far past, one period stale and far future stamps answer an image of another
+    pose (e.g. one before a jump): each is refused and steps nothing, so the next command
+    stamped with the image shown steps exactly one period, moving the arm once. Unstamped
+    (the probe's, a teleoperator's) and current stamps move the arm and step.
     """
     proc = lockstep(launch)
     probe.wait_first_image()
-    for sec, nanosec in ((0, 0), (-5, 0), (-2**31, 0), (1, 999_999_999), (2**31 - 1, 0)):
-        msg = probe.twist(V)
-        msg.header.stamp = Time(sec=sec, nanosec=nanosec)
-        n = len(probe.images)
-        probe.pub.publish(msg)
-        assert probe.spin(20.0, until=lambda: len(probe.images) > n and probe.joints)
-        probe.spin(0.2)
-        assert _moved(probe), (sec, nanosec)
+    probe.step(V)
+    for stamp in ((-5, 0), (-2**31, 0), (0, 1), (2**31 - 1, 0), 'stale'):
+        shown = probe.images[-1].header.stamp
+        q = np.array(probe.joints[-1].position)
+        bad = probe.twist(V)
+        if stamp == 'stale':  # the image before the one shown: one period stale
+            t = shown.sec + shown.nanosec * 1e-9 - DT
+            stamp = int(t), int(round((t - int(t)) * 1e9))
+        sec, nanosec = stamp
+        bad.header.stamp = Time(sec=sec, nanosec=nanosec)
+        probe.pub.publish(bad)
+        good = probe.twist(V)
+        good.header.stamp = shown
+        probe.pub.publish(good)
+        assert probe.spin(20.0, until=lambda: probe.images[-1].header.stamp != shown
+                          and probe.joints[-1].header.stamp != shown), (sec, nanosec)
+        probe.spin(0.3)  # what the refused one would have stepped, had it stepped
+        stamps = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in probe.images}
+        after = [s for s in stamps if s > (shown.sec, shown.nanosec)]
+        assert len(after) == 1, (sec, nanosec, after)  # one period, the good command's
+        t_after = after[0][0] + after[0][1] * 1e-9
+        assert t_after == pytest.approx(shown.sec + shown.nanosec * 1e-9 + DT, abs=1e-8)
+        assert not np.array_equal(np.array(probe.joints[-1].position), q)
+    shown = len(probe.images)
+    probe.step(V)  # unstamped: steps
+    assert len(probe.images) > shown and _moved(probe)
     assert proc.stop() == 0
 
 

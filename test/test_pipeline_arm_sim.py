@@ -160,3 +160,39 @@ def test_a_twist_in_another_frame_is_refused(lockstep):
     assert not rt.on_command([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], '').valid
     first = rt.on_tick()
     assert not np.any(first.qdot)  # the refused command stopped the arm
+
+
+def test_a_lockstep_answer_to_a_frame_before_a_jump_steps_nothing(lockstep):
+    """
+    The race a taught run meets: the servo answers the frame shown before a jump.
+
+    The answer arrives after the jump's frame; executed, it would move the arm from the
+    new pose with a twist computed at the old one and put a second frame in flight, so
+    the run would depend on when it arrived. Refused, the jump's frame still waits for its
+    own answer, which steps one period from the new pose.
+    """
+    sim = ArmSimCore(lockstep)
+    before = sim.on_command(np.zeros(6)).frame     # the image the late answer is for
+    jump = sim.go('start').frame
+    late = sim.on_command([0.0, 0.0, 0.05, 0.0, 0.0, 0.0], stamp_ns=before.stamp_ns)
+    assert not late.valid and late.frame is None
+    assert f'{before.stamp_ns * 1e-9:.9f}' in late.reason
+    assert f'{jump.stamp_ns * 1e-9:.9f}' in late.reason
+    now = sim.frame()
+    assert now.stamp_ns == jump.stamp_ns and np.array_equal(now.q, jump.q)
+    assert not np.any(now.qdot) and sim.republish_due  # the jump's frame is sent again
+    for stamp in (-1, jump.stamp_ns + 1, 2 ** 62):  # no frame shown has these stamps
+        assert not sim.on_command(np.ones(6) * 0.01, stamp_ns=stamp).valid
+        assert sim.frame().stamp_ns == jump.stamp_ns
+    answer = sim.on_command([0.0, 0.0, 0.05, 0.0, 0.0, 0.0], stamp_ns=jump.stamp_ns)
+    assert answer.valid and answer.frame.t == pytest.approx(jump.t + DT, abs=1e-12)
+    assert np.any(answer.frame.q != jump.q)
+    unstamped = sim.on_command(np.zeros(6))  # answers no image (a teleoperator): steps
+    assert unstamped.valid and unstamped.frame.t == pytest.approx(jump.t + 2 * DT, abs=1e-12)
+
+
+def test_realtime_commands_are_taken_whatever_their_stamp(lockstep):
+    rt = ArmSimCore(lockstep.replace({'clock_mode': 'realtime'}))
+    q0 = rt.frame().q
+    old = rt.on_command([0.0, 0.0, 0.05, 0.0, 0.0, 0.0], stamp_ns=1)  # latency is normal
+    assert old.valid and np.any(rt.on_tick().q != q0)

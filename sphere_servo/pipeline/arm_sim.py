@@ -16,7 +16,9 @@ Clock modes (``clock_mode``):
   still gets it; so is the frame after a command while a servo is enabled
   (:attr:`ArmSimCore.republish_due`), so that a pipeline that lost it (a node restarted)
   gets it again: the servo answers a stamp once, so the copies step nothing. With no servo
-  enabled (the run over) the arm falls quiet.
+  enabled (the run over) the arm falls quiet. A command stamped neither 0 (no image) nor
+  with the last frame's time answers another pose's image (from before a jump): refused, it
+  steps nothing, so one frame stays in flight whenever such a late answer arrives.
 
 Commands are camera twists in :data:`~sphere_servo.sim.arm.CAMERA_FRAME` (the current
 camera optical frame). A refused command is not executed and stops the arm at once (zero
@@ -295,20 +297,26 @@ class ArmSimCore:
         return float(np.linalg.norm(self.arm.oMc(q).translation / axes))
 
     # --- command and time -----------------------------------------------------------
-    def on_command(self, v_c, frame_id: str = CAMERA_FRAME,
-                   seq: int | None = None) -> CommandOutcome:
+    def on_command(self, v_c, frame_id: str = CAMERA_FRAME, seq: int | None = None,
+                   stamp_ns: int = 0) -> CommandOutcome:
         """
         Take a camera twist (6,) in frame ``frame_id``; in lockstep, step one period.
 
         A refused twist (:meth:`refusal`, or one the arm refuses: not finite, beyond its
         physical bound, or any in its error state) is not executed and stops the arm at
         once; in lockstep the period passes all the same with the arm held still, so the
-        loop gets its image.
+        loop gets its image, unless it answers another frame than the last
+        (:meth:`stale_answer`): that frame still waits for its own answer.
         ``seq``: the publisher's sequence number of the message (None or
         :data:`SEQ_UNSUPPORTED`: unknown, the one-driver rule is then the graph's warning).
+        ``stamp_ns``: its header stamp (0: it answers no image).
         """
         v_c = np.asarray(v_c, dtype=float)
         seq = None if seq == SEQ_UNSUPPORTED else seq
+        stale = self.stale_answer(stamp_ns)
+        if stale:
+            self.arm.stop()
+            return CommandOutcome(False, reason=stale)
         reason = self.refusal(frame_id, seq)
         if reason:
             self.arm.stop()
@@ -323,6 +331,25 @@ class ArmSimCore:
             return CommandOutcome(not reason, reason=reason)
         self.waiting = False
         return CommandOutcome(not reason, self.advance(), reason)
+
+    def stale_answer(self, stamp_ns: int) -> str:
+        """
+        Return why a lockstep command stamped ``stamp_ns`` answers another frame ('' if not).
+
+        A loop's twist carries the header of the image it answers; in lockstep one stamped
+        with any time but the last frame's (0 aside: no image) was computed at another pose
+        (before a jump, or in another run) and must neither move the arm nor step the clock.
+        """
+        now_ns = self.frame_stamp_ns
+        if not self.lockstep or stamp_ns == 0 or stamp_ns == now_ns:
+            return ''
+        return (f'a command answering the image stamped {stamp_ns * 1e-9:.9f} s, not the '
+                f'last one ({now_ns * 1e-9:.9f} s): computed at another pose, it steps nothing')
+
+    @property
+    def frame_stamp_ns(self) -> int:
+        """Return the stamp of the frame shown now (the last one published)."""
+        return int(round((START_TIME + self.arm.t) * 1e9))
 
     def refusal(self, frame_id: str, seq: int | None) -> str:
         """

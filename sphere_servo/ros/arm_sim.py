@@ -14,8 +14,11 @@ Subscribes
                             arm's physical bound, any while held or in ``error``, and one
                             from a second publisher while another drives (told apart by the
                             message info's publication sequence numbers: one driver at a
-                            time). Several publishers of the topic are reported (a warning,
-                            and the status value ``command_publishers``).
+                            time); in lockstep, one stamped with another image's time than
+                            the last (0 aside: it answers no image), e.g. from before a
+                            jump: it steps nothing. Several publishers of the topic are
+                            reported (a warning, and the status value
+                            ``command_publishers``).
     ``servo/enabled``       std_msgs/Bool  the servo's latched mode: the jumps are refused
                             while it is ``true`` (and its publisher lives)
 Publishes (stamps from the simulation clock, which starts at 1.0 s)
@@ -89,6 +92,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from sphere_servo.pipeline.arm_sim import ArmSimCore, SimFrame
+from sphere_servo.pipeline.common import stamp_ns
 from sphere_servo.pipeline.params import ArmSimParams
 from sphere_servo.ros.conversions import (camera_info_from_intrinsics, image_from_array,
                                           pose_from_se3, stamp_from_ns, twist_to_array)
@@ -158,8 +162,10 @@ class ArmSim(Node):
     # --- input ----------------------------------------------------------------------
     @guarded
     def _on_cmd(self, msg: TwistStamped, info: dict) -> None:
+        st = msg.header.stamp
         out = self.core.on_command(twist_to_array(msg.twist), msg.header.frame_id,
-                                   info.get('publication_sequence_number'))
+                                   info.get('publication_sequence_number'),
+                                   stamp_ns(st.sec, st.nanosec))
         if not out.valid:
             self.log.warn(f'refusing {out.reason}: command refused, not executed, arm stopped')
         if out.frame is not None:
