@@ -153,17 +153,23 @@ def frames(kind: str, n: int, seed: int):
         yield img, R, t
 
 
-def run(kind: str, n: int, seed: int) -> tuple[list, int]:
-    """Detect every frame of a class; return the wrong ones (index, why) and the found count."""
+def judge(seq) -> tuple[list, int, list]:
+    """Detect frames ``(image, R, t)``: the wrong ones (index, why), the found count, all."""
     det = Detector.for_target(TARGET)
-    bad, found = [], 0
-    for i, (img, R, t) in enumerate(frames(kind, n, seed)):
+    bad, found, out = [], 0, []
+    for i, (img, R, t) in enumerate(seq):
         d = det.detect(img, 'rgb8', INTR)
         found += d.found
         why = wrong(d, R, t)
         if why:
             bad.append((i, why))
-    return bad, found
+        out.append(d)
+    return bad, found, out
+
+
+def run(kind: str, n: int, seed: int) -> tuple[list, int]:
+    """Detect every frame of a class; return the wrong ones (index, why) and the found count."""
+    return judge(frames(kind, n, seed))[:2]
 
 
 # --- the sphere cut by the border ---------------------------------------------------------

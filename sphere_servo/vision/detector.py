@@ -36,11 +36,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 import math
 
+import cv2
 import numpy as np
 
 from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.conics import (conic_pixels_to_normalized, ellipse_params, fit_conic,
-                                      sampson_homogeneous)
+                                      homogeneous, sampson_homogeneous)
 from sphere_servo.core.measurement import (MeasurementError, Observation, sphere_from_conic,
                                            SphereMeasurement)
 from sphere_servo.core.targets import DEFAULT_COLORS, mark_names, SPECIAL, Target
@@ -312,11 +313,14 @@ class Detector:
             # shaded side); pixel figures only, so the choice does not depend on the
             # intrinsics the detector is given
             best = min(accepted, key=lambda c: (-c.n_marks, -c.sil.coverage, c.sil.rms_px))
-            if best.n_marks == 0 and len(seen) > 1:
-                # a sphere without marks among other sphere-like objects: which is it?
-                return Detection.missed(
-                    NotDetected(Reason.AMBIGUOUS, f'{len(seen)} in view'),
-                    self.marks.not_visible())
+            several = best.n_marks == 0 and len(seen) > 1
+            if several or self._marks_beside(img, encoding, rgb, best):
+                # a sphere without marks among other sphere-like objects, or one that lacks
+                # marks whose colours are seen beside it (on the target it hides, or that
+                # hides it): which is it?
+                why = f'{len(seen)} in view' if several else 'its missing marks seen beside it'
+                return Detection.missed(NotDetected(Reason.AMBIGUOUS, why),
+                                        self.marks.not_visible())
             return self._found(best)
         # no blob with a contrasted edge, and the frame is the body's colour and bright
         early = miss is None or _STAGE[miss.reason] <= _STAGE[Reason.LOW_CONTRAST]
@@ -360,6 +364,34 @@ class Detector:
             if why is not None:
                 return why
         return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil), lift)
+
+    def _marks_beside(self, img, encoding: str, rgb, cand: _Candidate) -> bool:
+        """
+        Tell whether the colour of a mark ``cand`` lacks is seen 3 px or more outside it.
+
+        A body-coloured sphere beside the target, partly in front of it or behind it, may
+        win with none or some of the target's marks (one near its limb, where the target
+        hides it): a sphere that lacks marks is the target only when no blob
+        (``min_mark_px``) of a lacking mark's colour lies outside it.
+        """
+        lack = [i for i, n in enumerate(self.mark_names) if not cand.marks[n].visible]
+        if rgb is None or not lack:
+            return False
+        sil = cand.sil
+        px, sel = self.marks.colour_pixels(img, encoding, rgb, sil.threshold)
+        if px is None:
+            return False
+        pts = px[sel[:, lack].any(axis=1)]
+        C = sil.conic_px
+        c = np.array([*sil.ellipse.centre, 1.0])
+        d = sampson_homogeneous(C, homogeneous(pts[:, 0], pts[:, 1])) * np.sign(c @ C @ c)
+        pts = pts[d < -3.0]
+        if len(pts) < self.marks.min_mark_px:
+            return False
+        m = np.zeros(img.shape[:2], np.uint8)
+        m[pts[:, 1], pts[:, 0]] = 1
+        st = cv2.connectedComponentsWithStats(m, connectivity=8)[2]
+        return bool((st[1:, cv2.CC_STAT_AREA] >= self.marks.min_mark_px).any())
 
     @staticmethod
     def _drop_foreign_arc(sil: Silhouette, C_n, sphere: SphereMeasurement, lift):

@@ -78,9 +78,7 @@ class Mark:
     @property
     def why(self) -> str:
         """Why it is not visible, as a message ('' when visible)."""
-        if self.visible:
-            return ''
-        return str(self.missing) if self.missing is not None \
+        return '' if self.visible else str(self.missing) if self.missing is not None \
             else f'mark {self.name} is not visible'
 
 
@@ -183,9 +181,6 @@ class MarkFinder:
     max_cut = math.radians(2.0)
     # the largest fraction of a cap's rim pixels with a channel clipped at 255 (rim fit)
     max_clipped = 0.1
-    # a whole cap (away from the limb) whose measured area is less than this fraction of the
-    # painted one is not measured
-    min_seen = 0.8
 
     def __init__(self, colors: dict, surface_marks, *, chroma_tol: float = 0.12,
                  min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0)),
@@ -220,6 +215,24 @@ class MarkFinder:
         """Name → an invisible :class:`Mark`, for every mark, and why."""
         return {n: Mark.lost(n, reason, detail) for n in self.mark_names}
 
+    def colour_pixels(self, img: Image, encoding: str, rgb: Image, level: float):
+        """
+        Pixels (N, 2) ``(x, y)`` of ``img`` that may be a mark's, and (N, n_marks) which.
+
+        Saturated (max − min ≥ 0.27 max, HSV S ≥ 69), bright enough (V ≥ 0.75 ``level``:
+        not the dark background), of chromaticity within chroma_tol of a mark's; (None,
+        None) when no pixel is saturated and bright.
+        """
+        hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV if encoding == 'rgb8' else cv2.COLOR_BGR2HSV)
+        cand = cv2.findNonZero(cv2.inRange(hsv, (0, 69, math.ceil(0.75 * level)),
+                                           (255, 255, 255)))
+        if cand is None:
+            return None, None
+        cand = cand.reshape(-1, 2)
+        y = rgb[cand[:, 1], cand[:, 0]].astype(np.float32) @ self._mark_Q
+        y *= y
+        return cand, (y @ self._mark_w) < 0.0
+
     def find(self, img: Image, encoding: str, rgb: Image | None, sphere: SphereMeasurement,
              sil: Silhouette, lift) -> dict:
         """
@@ -240,20 +253,10 @@ class MarkFinder:
         y0, y1 = max(0, int(ecy - rad)), min(H, int(ecy + rad) + 1)
         if x0 >= x1 or y0 >= y1:
             return marks
-        # one pass over the box: saturated (max − min ≥ 0.27 max, HSV S ≥ 69) and bright
-        # enough (not the dark background) are the mark candidates
-        hsv = cv2.cvtColor(img[y0:y1, x0:x1],
-                           cv2.COLOR_RGB2HSV if encoding == 'rgb8' else cv2.COLOR_BGR2HSV)
-        cand = cv2.findNonZero(cv2.inRange(hsv, (0, 69, math.ceil(0.75 * sil.threshold)),
-                                           (255, 255, 255)))
+        roi = rgb[y0:y1, x0:x1]
+        cand, sel_all = self.colour_pixels(img[y0:y1, x0:x1], encoding, roi, sil.threshold)
         if cand is None:
             return marks
-        cand = cand.reshape(-1, 2)
-        roi = rgb[y0:y1, x0:x1]
-        # (N, n_marks): chromaticity within chroma_tol of each mark's
-        y = roi[cand[:, 1], cand[:, 0]].astype(np.float32) @ self._mark_Q
-        y *= y
-        sel_all = (y @ self._mark_w) < 0.0
         C_px = sil.conic_px
         # inside of the silhouette: the sign of the conic at the ellipse's centre
         (ca, cb, cd), (_, cc, ce), (_, _, cf) = C_px.tolist()
