@@ -25,6 +25,7 @@ import functools
 import math
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from sphere_servo.core.measurement import SphereMeasurement
@@ -158,3 +159,48 @@ def match_centroid(sphere: SphereMeasurement, m0: np.ndarray, rho: float,
         if step < tol:
             break
     return m
+
+
+def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.ndarray,
+                  cov: np.ndarray, w_sr: np.ndarray, tol_px: float) -> float:
+    """
+    Share of a mark's coverage lying more than ``tol_px`` outside the image of its cap.
+
+    ``ray``: the measured centre's unit ray, ``rho`` the cap's angular radius; ``q`` (3, N)
+    the mark's pixels' unit rays, ``cov`` their coverage, ``w_sr`` their solid angles. The
+    visible part of the cap (m, ρ) is bounded by the arcs of its rim that face the camera
+    and the arcs of the limb within it; the hull of those, in gnomonic coordinates about
+    ``b`` scaled to pixels (by ``1/√w_sr``: any central camera), is compared with the
+    pixels at least half covered. A cable of the mark's colour across the cap, or a colour
+    fringe along the limb, taken for a cap spreads beyond the cap its centre predicts.
+    """
+    s, b, rd = sphere.s_nt, sphere.b, sphere.r_delta
+    sr = float(s @ ray)
+    m = (sr - math.sqrt(max(sr * sr - float(s @ s) + 1.0, 0.0))) * ray - s
+    m /= math.sqrt(float(m @ m))
+    T, F = tangent_basis(m), tangent_basis(b)
+    psi = np.linspace(0.0, 2 * math.pi, 96, endpoint=False)
+    cs, sn = np.cos(psi), np.sin(psi)
+    ring = T[2][:, None] * math.cos(rho) + math.sin(rho) * (T[0][:, None] * cs
+                                                            + T[1][:, None] * sn)
+    limb = -rd * b[:, None] + math.sqrt(1.0 - rd * rd) * (F[0][:, None] * cs
+                                                          + F[1][:, None] * sn)
+    # the rim's points that face the camera (n·P < 0, P = s + n), the limb's in the cap
+    n = np.hstack([ring[:, ring.T @ s < -1.0], limb[:, limb.T @ m >= math.cos(rho)]])
+    conf = cov >= 0.5
+    if n.shape[1] < 3 or not conf.any():
+        return 1.0 if conf.any() else 0.0
+    scale = 1.0 / math.sqrt(float(np.median(w_sr[conf])))
+    G = F @ (n + s[:, None])
+    H = cv2.convexHull((G[:2] / G[2] * scale).T.astype(np.float32))[:, 0].astype(float)
+    g = F @ q[:, conf]
+    g = g[:2] / g[2] * scale
+    # the distance outside a convex polygon is at least the largest over its edges' lines
+    e = np.roll(H, -1, axis=0) - H
+    nrm = np.column_stack([e[:, 1], -e[:, 0]]) / np.maximum(np.hypot(*e.T), 1e-12)[:, None]
+    off = np.einsum('ij,ij->i', nrm, H)
+    if float(nrm[0] @ H.mean(axis=0)) > off[0]:
+        nrm, off = -nrm, -off                           # outward normals
+    d = (nrm @ g - off[:, None]).max(axis=0)
+    c = cov[conf]
+    return float(c[d > tol_px].sum() / c.sum())

@@ -367,14 +367,15 @@ class Detector:
 
     def _marks_beside(self, img, encoding: str, rgb, cand: _Candidate) -> bool:
         """
-        Tell whether the colour of a mark ``cand`` lacks is seen 3 px or more outside it.
+        Tell whether the colour of a surface mark ``cand`` lacks is seen 3 px or more out.
 
         A body-coloured sphere beside the target, partly in front of it or behind it, may
         win with none or some of the target's marks (one near its limb, where the target
-        hides it): a sphere that lacks marks is the target only when no blob
-        (``min_mark_px``) of a lacking mark's colour lies outside it.
+        hides it): a sphere that lacks surface marks is the target only when no blob
+        (``min_mark_px``) of a lacking one's colour lies outside it (the CC tip P3 does).
         """
-        lack = [i for i, n in enumerate(self.mark_names) if not cand.marks[n].visible]
+        lack = [i for i, n in enumerate(self.mark_names)
+                if not cand.marks[n].visible and n in self.marks.surface_marks]
         if rgb is None or not lack:
             return False
         sil = cand.sil

@@ -26,10 +26,10 @@ import numpy as np
 from sphere_servo.core.conics import homogeneous, sampson_homogeneous
 from sphere_servo.core.measurement import MeasurementError, SphereMeasurement
 from sphere_servo.core.types import Image, Vec3
-from sphere_servo.vision.caps import (CapCentre, match_centroid, predicted_direction,
-                                      tangent_basis)
+from sphere_servo.vision.caps import (CapCentre, match_centroid, outside_share,
+                                      predicted_direction, tangent_basis)
 from sphere_servo.vision.cone import limb_distance
-from sphere_servo.vision.image import chroma_test, to_chroma
+from sphere_servo.vision.image import chroma_test, components, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.silhouette import Silhouette
 
@@ -141,24 +141,6 @@ def ball_centre(q: np.ndarray, w: np.ndarray) -> Vec3:
     return m / max(float(np.sqrt(m @ m)), 1e-300)
 
 
-def components(m: np.ndarray, n: int) -> tuple[int, np.ndarray | None, np.ndarray | None]:
-    """
-    Label the 8-connected components of a 0/1 uint8 mask ``m`` with ``n`` pixels set.
-
-    Returns ``cv2.connectedComponentsWithStats(m, connectivity=8)``'s count (background
-    included), labels and stats; for one component (the usual mark) only its count 2, found
-    by one flood fill from the first set pixel — sequential, where OpenCV's labelling hands
-    a mask of a few rows to its thread pool, which waits for a free core on a loaded
-    machine. ``m`` is overwritten.
-    """
-    x = int(m.reshape(-1).argmax())
-    area = cv2.floodFill(m, None, (x % m.shape[1], x // m.shape[1]), 2, 0, 0, 8)[0]
-    if area == n:
-        return 2, None, None
-    nlab, lab, st, _ = cv2.connectedComponentsWithStats((m > 0).view(np.uint8), connectivity=8)
-    return nlab, lab, st
-
-
 class MarkFinder:
     """
     Find the marks and measure their centres, configured by the colours.
@@ -181,6 +163,9 @@ class MarkFinder:
     max_cut = math.radians(2.0)
     # the largest fraction of a cap's rim pixels with a channel clipped at 255 (rim fit)
     max_clipped = 0.1
+    # the largest share of a mark's pixels farther than spread_px outside the cap its
+    # centre predicts (a cable of its colour across it, a colour fringe along the limb)
+    max_spread, spread_px = 0.1, 2.0
 
     def __init__(self, colors: dict, surface_marks, *, chroma_tol: float = 0.12,
                  min_mark_px: float = 3.0, mark_radius: float = float(np.radians(9.0)),
@@ -380,6 +365,12 @@ class MarkFinder:
                                             partial=True) if rim is not None else \
                         Mark.lost(name, Reason.MARK_FACES_AWAY,
                                   'its centre on the sphere faces away', area)
+                    continue
+                out = outside_share(sphere, ray, self.mark_radius, q, alpha / w_sr, w_sr,
+                                    self.spread_px)
+                if out > self.max_spread:       # not the cap that its centre predicts
+                    marks[name] = Mark.lost(name, Reason.MARK_NOT_A_CAP,
+                                            f'{100 * out:.0f} % of it outside', area)
                     continue
             else:
                 q, w_sr = lift.pixels(xx + ox, yy + oy)

@@ -33,6 +33,7 @@ class Reason(Enum):
     MARK_CUT_BY_BORDER = 'mark {mark} cut by the image border'
     MARK_INCOMPLETE = 'mark {mark} seen only in part'
     MARK_OFF_SPHERE = 'mark {mark} lies outside the sphere'
+    MARK_NOT_A_CAP = 'mark {mark} spreads beyond the cap its centre predicts'
 
 
 @dataclass(frozen=True)
