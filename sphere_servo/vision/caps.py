@@ -108,6 +108,16 @@ def predicted_direction(sphere: SphereMeasurement, m: np.ndarray, rho: float,
     return d[:2] / d[2]
 
 
+def visible_solid_angle(sphere: SphereMeasurement, m: np.ndarray, rho: float) -> float:
+    """Solid angle (sr) of the part of the cap (m, ρ) that faces the camera (Σ dA cos i/‖P‖²)."""
+    n = tangent_basis(m).T @ _cap_samples(rho, 16, 32)          # (3, N) unit normals
+    P = n + sphere.s_nt[:, None]
+    facing = -np.einsum('ij,ij->j', n, P)                # ‖P‖ cos i
+    ok = facing > 0
+    pp = np.einsum('ij,ij->j', P[:, ok], P[:, ok])
+    return 2 * math.pi * (1 - math.cos(rho)) / n.shape[1] * float((facing[ok] / pp ** 1.5).sum())
+
+
 def _jacobian_inv(sphere, m, rho, c, predict, h: float = 1e-4) -> np.ndarray | None:
     """Invert d(centroid)/d(tangent angles) at m, by forward differences."""
     B = tangent_basis(m)

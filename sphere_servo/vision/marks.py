@@ -27,7 +27,7 @@ from sphere_servo.core.conics import homogeneous, sampson_homogeneous
 from sphere_servo.core.measurement import MeasurementError, SphereMeasurement
 from sphere_servo.core.types import Image, Vec3
 from sphere_servo.vision.caps import (CapCentre, match_centroid, outside_share,
-                                      predicted_direction, tangent_basis)
+                                      predicted_direction, tangent_basis, visible_solid_angle)
 from sphere_servo.vision.cone import limb_distance
 from sphere_servo.vision.image import chroma_test, components, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
@@ -358,7 +358,8 @@ class MarkFinder:
                     # a whole cap whose measured area is a fraction of the painted one: part
                     # of it was not classified as the mark (clipped colours, an occluder)
                     marks[name] = Mark.lost(name, Reason.MARK_INCOMPLETE,
-                                            f'{100 * seen:.0f} % of its area seen', area)
+                                            f'{100 * seen:.0f} % of its area seen', area,
+                                            partial=rim is not None)
                     continue
                 if ray is None:
                     marks[name] = Mark.lost(name, Reason.MARK_UNMEASURABLE, area_px=area,
@@ -409,7 +410,8 @@ class MarkFinder:
         Returns the direction of ``s_n,t + m`` (m: the unit normal at the centre), or None
         when the centre cannot be measured (it faces away from the camera, or the cap's
         model finds no visible part), and the fraction of the cap's area
-        ``2π (1 − cos mark_radius)`` (units of r²) the weights cover (NaN near the limb).
+        ``2π (1 − cos mark_radius)`` (units of r²) the weights cover; near the limb, of the
+        solid angle of the visible part of the cap its centre predicts (NaN if none).
         """
         rho, nn, cos_i = on_sphere(sphere, q, hits and rim is None)
         s_nt = sphere.s_nt
@@ -436,7 +438,9 @@ class MarkFinder:
                     m_rim = None        # a cap mostly hidden: its centroid says too little
             if m_rim is None:
                 return CapCentre(None, seen)
+            # the area measured over the area of the visible part of the cap m_rim predicts
             m = m_rim
+            seen = float(w.sum()) / max(visible_solid_angle(sphere, m, self.mark_radius), 1e-300)
         P = s_nt + m
         if float(m @ P) >= 0:                   # the centre faces away: not measurable
             return CapCentre(None, seen)
