@@ -35,6 +35,7 @@ from rosbags.typesys import get_types_from_idl, get_types_from_msg, get_typestor
 
 from sphere_servo.bag import mcap
 from sphere_servo.bag.metadata import BagError, BagMeta, normal_qos, read_metadata, STORAGES
+from sphere_servo.bag.storage import storage_reader
 
 _TYPESTORE = None
 ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
@@ -183,8 +184,6 @@ class BagReader:
 
     def open_files(self) -> BagReader:
         """Open the storage files and pair their connections (raises BagError)."""
-        from rosbags.rosbag2.storage_mcap import McapReader
-        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
         try:
             for f in self._storage_paths():
                 why = unclosed(f)
@@ -194,7 +193,7 @@ class BagReader:
                                    + REINDEX_HINT.format(self.bag_dir))
                 if f.suffix == '.db3':
                     check_sqlite(f)
-                st = (McapReader if f.suffix == '.mcap' else Sqlite3Reader)(f)
+                st = storage_reader(f)
                 try:
                     st.open()
                 except Exception as err:  # rosbags raises several types: all "unreadable"

@@ -1,0 +1,125 @@
+"""
+The storage readers of ``rosbags``, made to read every storage file rosbag2 writes.
+
+Pure module (no rclpy). ``rosbags``' readers go wrong on valid files in three ways:
+
+- a message definition of an encoding they do not know makes the whole file unreadable (a
+  ``KeyError`` on open). rosbag2 records a type whose definition it cannot find with the
+  encoding ``unknown`` (or empty) and no text; an MCAP file may hold a ``jsonschema`` or
+  ``protobuf`` channel beside the ROS ones. Such a definition is read here as none: the
+  topic is still listed (its type then comes from the Jazzy typestore, or it is skipped
+  as a type no one knows);
+- MCAP chunks without message index records (libmcap's ``noMessageIndex``; the index is
+  optional in the specification) are never read: ``rosbags`` picks the chunks to read by
+  their message indexes, so the file reads as empty while its statistics count every
+  message. Here such a chunk is indexed by reading it once on open;
+- MCAP statistics without per-channel counts (optional too) give every topic 0 messages:
+  the counts are then taken from the chunks.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from contextlib import contextmanager
+
+from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
+from rosbags.rosbag2 import storage_mcap, storage_sqlite3
+from rosbags.rosbag2.storage_mcap import McapReader
+from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+MCAP_FORMATS = {'ros2msg': MessageDefinitionFormat.MSG, 'ros2idl': MessageDefinitionFormat.IDL,
+                'omgidl': MessageDefinitionFormat.IDL}
+# rosbags' query of the sqlite3 definitions, and the same restricted to the known encodings
+_DEFS_QUERY = ('SELECT topic_type, encoding, encoded_message_definition, '
+               'type_description_hash FROM message_definitions ORDER BY id')
+_KNOWN_DEFS_QUERY = _DEFS_QUERY.replace(
+    ' ORDER BY', " WHERE encoding IN ('ros2msg', 'ros2idl') ORDER BY")
+
+
+def mcap_msgdef(schema) -> MessageDefinition:
+    """Return an MCAP schema's definition; none when its encoding is not a ROS one."""
+    fmt = MCAP_FORMATS.get(schema.encoding) if schema is not None else None
+    if fmt is None:
+        return MessageDefinition(MessageDefinitionFormat.NONE, '')
+    return MessageDefinition(fmt, schema.data)
+
+
+@contextmanager
+def _patched(module, name: str, value):
+    old = getattr(module, name)
+    setattr(module, name, value)
+    try:
+        yield
+    finally:
+        setattr(module, name, old)
+
+
+class Mcap(McapReader):
+    """``rosbags``' MCAP reader; see the module docstring."""
+
+    def open(self) -> None:  # noqa: A003 (rosbags' name)
+        with _patched(storage_mcap, 'get_msgdef', mcap_msgdef):
+            super().open()
+        unindexed = [c for c in self.chunks if not c.channel_count]
+        every = {c.id: c for c in self.connections}
+        for chunk in unindexed:
+            src = storage_mcap.msgsrc(chunk, every, 0, 2**63 - 1, self.bio)
+            chunk.channel_count.update(Counter(m.connection.id for m in src if m.offset))
+        stats = self.statistics
+        if self.chunks and (unindexed or stats is None or sum(
+                stats.channel_message_counts.values()) != stats.message_count):
+            counts = Counter()
+            for chunk in self.chunks:
+                counts.update(chunk.channel_count)
+            self.connections = [c._replace(msgcount=counts.get(c.id, 0))
+                                for c in self.connections]
+
+
+class _Cursor:
+    """A cursor that reads only the definitions of known encodings."""
+
+    def __init__(self, cur):
+        self.cur = cur
+
+    def execute(self, query, *args):
+        return self.cur.execute(_KNOWN_DEFS_QUERY if query == _DEFS_QUERY else query, *args)
+
+    def __getattr__(self, name):
+        return getattr(self.cur, name)
+
+
+class _Connection:
+    """An ``apsw`` connection whose cursors are :class:`_Cursor`."""
+
+    def __init__(self, *args, **kwargs):
+        self.con = _APSW.Connection(*args, **kwargs)
+
+    def cursor(self):
+        return _Cursor(self.con.cursor())
+
+    def __getattr__(self, name):
+        return getattr(self.con, name)
+
+
+class _Apsw:
+    """``apsw`` as ``rosbags``' sqlite3 reader sees it while it lists the definitions."""
+
+    Connection = _Connection
+
+    def __getattr__(self, name):
+        return getattr(_APSW, name)
+
+
+_APSW = storage_sqlite3.apsw
+
+
+class Sqlite3(Sqlite3Reader):
+    """``rosbags``' sqlite3 reader; see the module docstring."""
+
+    def _open(self) -> None:
+        with _patched(storage_sqlite3, 'apsw', _Apsw()):
+            super()._open()
+
+
+def storage_reader(path):
+    """Return the (unopened) reader of a storage file: ``.mcap`` or ``.db3``."""
+    return (Mcap if str(path).endswith('.mcap') else Sqlite3)(path)

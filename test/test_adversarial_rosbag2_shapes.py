@@ -1,0 +1,141 @@
+"""
+Storage files as rosbag2 and other MCAP writers make them, written here byte by byte.
+
+Each must read exactly what was written (topics, counts, times, order), or be refused:
+
+- MCAP schemas of encodings ``rosbags`` does not know: rosbag2's ``unknown`` (or empty)
+  for a type whose definition it could not find, a ``jsonschema`` channel beside the ROS
+  ones; the same ``unknown`` in a Jazzy sqlite3 ``message_definitions`` table;
+- MCAP chunks without message index records, statistics without per-channel counts
+  (both optional in the MCAP specification).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+import sqlite3
+import struct
+import zlib
+
+from bag_cases import foxy_qos, STRING, string_cdr, TS
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+from sphere_servo.bag.bagio import iter_raw, open_bag, select
+
+MAGIC = b'\x89MCAP0\r\n'
+STRING_DEF = b'string data\n'
+
+
+def _s(x) -> bytes:
+    b = x.encode() if isinstance(x, str) else x
+    return struct.pack('<I', len(b)) + b
+
+
+def _rec(op: int, body: bytes) -> bytes:
+    return struct.pack('<BQ', op, len(body)) + body
+
+
+def write_mcap(path: Path, schemas, channels, messages, index: bool = True,
+               channel_counts: bool = True) -> None:
+    """
+    Write a finished MCAP file of one uncompressed chunk, as libmcap lays it out.
+
+    ``schemas``: (id, name, encoding, data); ``channels``: (id, schema id, topic, message
+    encoding); ``messages``: (channel id, log time, data), in file order. ``index``: message
+    index records after the chunk; ``channel_counts``: the statistics' per-channel counts.
+    """
+    out = bytearray(MAGIC + _rec(0x01, _s('ros2') + _s('libmcap 1.4.0')))
+    head = b''.join(_rec(0x03, struct.pack('<H', i) + _s(n) + _s(e) + _s(d))
+                    for i, n, e, d in schemas)
+    head += b''.join(_rec(0x04, struct.pack('<HH', i, sid) + _s(t) + _s(enc) +
+                          _s(_s('offered_qos_profiles') + _s('')))
+                     for i, sid, t, enc in channels)
+    out += head
+    chunk, idx = bytearray(head), {}
+    for seq, (cid, t, data) in enumerate(messages):
+        idx.setdefault(cid, []).append((t, len(chunk)))
+        chunk += _rec(0x05, struct.pack('<HIQQ', cid, seq, t, t) + data)
+    t0, t1 = min(m[1] for m in messages), max(m[1] for m in messages)
+    chunk_at = len(out)
+    out += _rec(0x06, struct.pack('<QQQI', t0, t1, len(chunk), zlib.crc32(chunk)) + _s('') +
+                struct.pack('<Q', len(chunk)) + bytes(chunk))
+    chunk_len, offsets = len(out) - chunk_at, {}
+    for cid, pairs in sorted(idx.items()) if index else ():
+        offsets[cid] = len(out)
+        body = b''.join(struct.pack('<QQ', t, o) for t, o in pairs)
+        out += _rec(0x07, struct.pack('<HI', cid, len(body)) + body)
+    mi_len = len(out) - chunk_at - chunk_len
+    out += _rec(0x0F, struct.pack('<I', 0))
+    summary_at = len(out)
+    out += head
+    counts = b''.join(struct.pack('<HQ', c, len(p)) for c, p in sorted(idx.items())) \
+        if channel_counts else b''
+    out += _rec(0x0B, struct.pack('<QHIIIIQQ', len(messages), len(schemas), len(channels),
+                                  0, 0, 1, t0, t1) + _s(counts))
+    out += _rec(0x08, struct.pack('<QQQQ', t0, t1, chunk_at, chunk_len) +
+                _s(b''.join(struct.pack('<HQ', c, o) for c, o in sorted(offsets.items()))) +
+                struct.pack('<Q', mi_len) + _s('') + struct.pack('<QQ', len(chunk), len(chunk)))
+    out += _rec(0x02, struct.pack('<QQI', summary_at, 0, 0)) + MAGIC
+    path.write_bytes(bytes(out))
+
+
+def read(path: Path):
+    """Return (topic, time) in read order, {topic: count}, {topic: type}, played count."""
+    reader = open_bag(path)
+    try:
+        got = [(c.topic, ts) for c, ts, _ in iter_raw(reader)]
+        return (got, {c.topic: c.msgcount for c in reader.connections},
+                {c.topic: c.msgtype for c in reader.connections}, select(reader).count)
+    finally:
+        reader.close()
+
+
+# (channel, log time) in file order: out of time order inside the chunk
+ORDER = [(1, 30), (2, 15), (1, 10), (1, 20)]
+READ = [('/chatter', 10), ('/other', 15), ('/chatter', 20), ('/chatter', 30)]
+
+
+def _two_channel_mcap(path: Path, other_schema, other_encoding='cdr', **kw) -> None:
+    path.mkdir()
+    write_mcap(path / 'bag_0.mcap', [(1, STRING, 'ros2msg', STRING_DEF), other_schema],
+               [(1, 1, '/chatter', 'cdr'), (2, other_schema[0], '/other', other_encoding)],
+               [(c, t, string_cdr(str(t)) if c == 1 else b'{"a": 1}') for c, t in ORDER],
+               **kw)
+
+
+@pytest.mark.parametrize('schema, encoding, played', [
+    ((2, 'foo_msgs/msg/Bar', 'unknown', b''), 'cdr', 4),   # rosbag2: definition not found
+    ((2, 'foo_msgs/msg/Bar', '', b''), 'cdr', 4),
+    ((2, 'Foo', 'jsonschema', b'{"type": "object"}'), 'json', 3),  # json: not played
+])
+def test_mcap_schema_of_an_encoding_rosbags_does_not_know(tmp_path, schema, encoding, played):
+    _two_channel_mcap(tmp_path / 'bag', schema, encoding)
+    assert read(tmp_path / 'bag') == (READ, {'/chatter': 3, '/other': 1},
+                                      {'/chatter': STRING, '/other': schema[1]}, played)
+
+
+@pytest.mark.parametrize('kw', [{'index': False}, {'channel_counts': False},
+                                {'index': False, 'channel_counts': False}])
+def test_mcap_without_message_index_or_channel_counts(tmp_path, kw):
+    _two_channel_mcap(tmp_path / 'bag', (2, STRING, 'ros2msg', STRING_DEF), **kw)
+    assert read(tmp_path / 'bag') == (READ, {'/chatter': 3, '/other': 1},
+                                      {'/chatter': STRING, '/other': STRING}, 4)
+
+
+@pytest.mark.parametrize('encoding', ['unknown', ''])
+def test_db3_definition_rosbag2_did_not_find(tmp_path, encoding):
+    with Writer(tmp_path / 'bag', version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        chatter = w.add_connection('/chatter', STRING, typestore=TS,
+                                   offered_qos_profiles=[foxy_qos()])
+        other = w.add_connection('/other', 'foo_msgs/msg/Bar', msgdef='int32 a\n',
+                                 rihs01='RIHS01_' + '0' * 64,
+                                 offered_qos_profiles=[foxy_qos()])
+        for c, t in ORDER:
+            w.write(chatter if c == 1 else other, t, string_cdr(str(t)))
+    con = sqlite3.connect(tmp_path / 'bag' / 'bag.db3')
+    con.execute('UPDATE message_definitions SET encoding = ?, encoded_message_definition = '
+                "'' WHERE topic_type = 'foo_msgs/msg/Bar'", (encoding,))
+    con.commit()
+    con.close()
+    got = read(tmp_path / 'bag')
+    assert got == (READ, {'/chatter': 3, '/other': 1},
+                   {'/chatter': STRING, '/other': 'foo_msgs/msg/Bar'}, 4)
