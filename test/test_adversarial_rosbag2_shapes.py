@@ -7,7 +7,9 @@ Each must read exactly what was written (topics, counts, times, order), or be re
   for a type whose definition it could not find, a ``jsonschema`` channel beside the ROS
   ones; the same ``unknown`` in a Jazzy sqlite3 ``message_definitions`` table;
 - MCAP chunks without message index records, statistics without per-channel counts
-  (both optional in the MCAP specification).
+  (both optional in the MCAP specification);
+- a servo run whose topics are stored relative (``servo/state``, as rosbag2 may store a
+  name) beside an absolute image topic: the run read from it is the recorded one.
 """
 from __future__ import annotations
 
@@ -19,7 +21,9 @@ import zlib
 from bag_cases import foxy_qos, STRING, string_cdr, TS
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
-from sphere_servo.bag.bagio import iter_raw, open_bag, select
+from run_bag import run_bag
+from sphere_servo.bag.bagio import bag, iter_raw, open_bag, select, typestore
+from sphere_servo.bag.run import read_run
 
 MAGIC = b'\x89MCAP0\r\n'
 STRING_DEF = b'string data\n'
@@ -139,3 +143,20 @@ def test_db3_definition_rosbag2_did_not_find(tmp_path, encoding):
     got = read(tmp_path / 'bag')
     assert got == (READ, {'/chatter': 3, '/other': 1},
                    {'/chatter': STRING, '/other': 'foo_msgs/msg/Bar'}, 4)
+
+
+def test_run_of_relative_topics_is_the_recorded_run(tmp_path):
+    rec = run_bag(tmp_path)
+    rel = tmp_path / 'relative'
+    with bag(rec.bag) as reader, Writer(rel, version=9,
+                                        storage_plugin=StoragePlugin.SQLITE3) as w:
+        conns = {c.topic: w.add_connection(c.topic if 'image' in c.topic else c.topic[1:],
+                                           c.msgtype, typestore=typestore())
+                 for c in reader.connections}
+        for c, t, raw in iter_raw(reader):
+            w.write(conns[c.topic], t, raw)
+    run = read_run(rel)
+    desired = run.desired and (run.desired.how, run.desired.stamp, run.desired.values)
+    assert (len(run.frames), desired) == \
+        (rec.iterations, ('taught', rec.taught_stamp, rec.desired_meas))
+    assert (run.states, run.meas) == (read_run(rec.bag).states, read_run(rec.bag).meas)

@@ -24,7 +24,8 @@ from sphere_servo.bag.reader import BagReader, one_line, typestore
 from sphere_servo.vision.image import image_from_buffer, LAYOUTS
 
 __all__ = [
-    'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'select_connections',
+    'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'on_topics',
+    'select_connections',
     'Skipped', 'Selection', 'select', 'summary', 'format_summary', 'iter_raw',
     'image_to_array', 'iter_images', 'typestore', 'INFINITE_NS', 'qos_time',
 ]
@@ -67,6 +68,17 @@ def bag(path: str | Path) -> Iterator[BagReader]:
         yield reader
     finally:
         reader.close()
+
+
+def on_topics(reader: BagReader, topics: Iterable[str]) -> list[Connection]:
+    """
+    Return the connections on any of ``topics``, by fully qualified name ([] if none).
+
+    A bag may store a topic relative (``camera/image_raw``, as rosbag2 may write it): it is
+    the topic ``/camera/image_raw`` all the same.
+    """
+    wanted = {topic_name(t) for t in topics}
+    return [c for c in reader.connections if topic_name(c.topic) in wanted]
 
 
 def _match(conns: list[Connection], wanted: str) -> list[Connection]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sphere_servo.bag.bagio import BagError, iter_raw, select_connections
+from sphere_servo.bag.bagio import BagError, iter_raw, on_topics, select_connections
 from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.measurement import Observation
 from sphere_servo.pipeline.common import Refusal, stamp_ns
@@ -162,7 +162,7 @@ class Pipeline:
 
 def read_topic(reader, topic: str) -> list[tuple[int, object]]:
     """Return (bag ns, rosbags message) of every message on ``topic``; [] if not in the bag."""
-    conns = [c for c in reader.connections if c.topic == topic]
+    conns = on_topics(reader, [topic])
     if not conns:
         return []
     out = []

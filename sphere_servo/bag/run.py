@@ -32,7 +32,8 @@ import sys
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.bag.bagio import bag, BagError, image_to_array, iter_raw, topic_name
+from sphere_servo.bag.bagio import (bag, BagError, image_to_array, iter_raw, on_topics,
+                                    topic_name)
 from sphere_servo.bag.desired import auto_desired
 from sphere_servo.bag.offline import (desired_topic, features_topic, Frame, header_ns,
                                       IMAGE_TOPIC, INFO_TOPIC, MEAS_TOPIC, Pipeline, Settings,
@@ -160,19 +161,19 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
     msgs: dict[str, list] = {t: [] for t in wanted}
     images: list[tuple[int, int]] = []   # (bag ns, stamp), bag order
     with bag(path) as reader:
-        have = {c.topic for c in reader.connections}
+        have = {topic_name(c.topic) for c in reader.connections}
         if image_topic not in have:
             raise BagError(f'{path}: no images: topic {image_topic} is not in the bag (it '
                            f'has {", ".join(sorted(have)) or "no topics"})')
-        conns = [c for c in reader.connections if c.topic in wanted | {image_topic}]
-        for conn, ts, raw in iter_raw(reader, conns):
-            if conn.topic == image_topic:
+        for conn, ts, raw in iter_raw(reader, on_topics(reader, wanted | {image_topic})):
+            topic = topic_name(conn.topic)
+            if topic == image_topic:
                 images.append((ts, header_stamp(raw)))  # decode only the header
                 continue
-            if conn.topic == INFO_TOPIC and msgs[INFO_TOPIC]:
+            if topic == INFO_TOPIC and msgs[INFO_TOPIC]:
                 continue  # the intrinsics do not change in a run
             try:
-                msgs[conn.topic].append((ts, reader.deserialize(raw, conn.msgtype)))
+                msgs[topic].append((ts, reader.deserialize(raw, conn.msgtype)))
             except Exception as err:  # rosbags raises several types; all mean "corrupt"
                 raise BagError(f'cannot decode a message on {conn.topic}: {err}') from None
     if not images:
@@ -268,8 +269,7 @@ def iter_frames(run: Run):
     pending: dict[int, tuple] = {}
     nxt = 0
     with bag(run.path) as reader:
-        conns = [c for c in reader.connections if c.topic == run.image_topic]
-        for conn, _, raw in iter_raw(reader, conns):
+        for conn, _, raw in iter_raw(reader, on_topics(reader, [run.image_topic])):
             k = index.get(header_stamp(raw))
             if k is None or k < nxt or k in pending:
                 continue  # not a frame, or a re-publication of one

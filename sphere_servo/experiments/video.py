@@ -45,7 +45,7 @@ import time
 import cv2
 import numpy as np
 
-from sphere_servo.bag.bagio import bag, BagError
+from sphere_servo.bag.bagio import bag, BagError, on_topics
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
 from sphere_servo.bag.run import cli_error, iter_frames, output_path, read_run, Run
 from sphere_servo.core.targets import make_target
@@ -321,7 +321,7 @@ def check_stamps(run: Run) -> None:
 def check_image_type(run: Run) -> None:
     """Refuse (BagError) a run whose image topic holds other than ``sensor_msgs/msg/Image``."""
     with bag(run.path) as reader:
-        types = {c.msgtype for c in reader.connections if c.topic == run.image_topic}
+        types = {c.msgtype for c in on_topics(reader, [run.image_topic])}
     if types - {IMAGE_TYPE}:
         raise BagError(f'{run.path}: {run.image_topic} holds {", ".join(sorted(types))}: the '
                        f'video needs raw images ({IMAGE_TYPE})')
