@@ -14,7 +14,10 @@ Pure module (no rclpy). ``rosbags``' readers go wrong on valid files in three wa
   their message indexes, so the file reads as empty while its statistics count every
   message. Here such a chunk is indexed by reading it once on open;
 - MCAP statistics without per-channel counts (optional too) give every topic 0 messages:
-  the counts are then taken from the chunks.
+  the counts are then taken from the chunks;
+- sqlite3 messages of one timestamp come in no defined order (grouped by topic, in
+  practice): rosbag2 reads them as recorded (``ORDER BY timestamp, id``), and so does this
+  reader. Ties are common in bags recorded on simulated time (``--use-sim-time``).
 """
 from __future__ import annotations
 
@@ -118,6 +121,20 @@ class Sqlite3(Sqlite3Reader):
     def _open(self) -> None:
         with _patched(storage_sqlite3, 'apsw', _Apsw()):
             super()._open()
+
+    def messages(self, connections, start: int | None = None, stop: int | None = None):
+        """Yield (connection, timestamp, data) by time, then as recorded (rosbag2's order)."""
+        ids = sorted({c.id for c in connections})
+        where, args = [f'topic_id IN ({",".join("?" * len(ids))})'], list(ids)
+        for clause, value in (('timestamp >= ?', start), ('timestamp < ?', stop)):
+            if value is not None:
+                where.append(clause)
+                args.append(value)
+        conns = {c.id: c for c in self.connections}
+        for cid, ts, data in self.dbconn.execute(
+                f'SELECT topic_id, timestamp, data FROM messages WHERE {" AND ".join(where)} '
+                'ORDER BY timestamp, id', args):
+            yield conns[cid], ts, data
 
 
 def storage_reader(path):
