@@ -12,11 +12,16 @@ Each must read exactly what was written (topics, counts, times, order), or be re
   as recorded, as rosbag2 reads them (by time, then by record order), also from a db3
   without rosbag2's timestamp index (one another tool wrote);
 - a servo run whose topics are stored relative (``servo/state``, as rosbag2 may store a
-  name) beside an absolute image topic: the run read from it is the recorded one.
+  name) beside an absolute image topic: the run read from it is the recorded one;
+- a split run whose ``servo/state`` changes type in its second file: the watch tools read
+  the rest and say what they left out.
 """
 from __future__ import annotations
 
+from contextlib import redirect_stderr
+import io
 from pathlib import Path
+import shutil
 import sqlite3
 import struct
 import zlib
@@ -27,6 +32,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from run_bag import run_bag
 from sphere_servo.bag.bagio import bag, iter_raw, open_bag, select, typestore
 from sphere_servo.bag.run import read_run
+from sphere_servo.experiments import video
+import yaml
 
 MAGIC = b'\x89MCAP0\r\n'
 STRING_DEF = b'string data\n'
@@ -184,3 +191,25 @@ def test_run_of_relative_topics_is_the_recorded_run(tmp_path):
     assert (len(run.frames), desired) == \
         (rec.iterations, ('taught', rec.taught_stamp, rec.desired_meas))
     assert (run.states, run.meas) == (read_run(rec.bag).states, read_run(rec.bag).meas)
+
+
+def test_watch_tools_say_what_the_reader_left_out(tmp_path):
+    rec = run_bag(tmp_path)
+    split = tmp_path / 'split'
+    shutil.copytree(rec.bag, split)
+    with Writer(tmp_path / 'extra', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection('/servo/state', STRING, typestore=TS)
+        for t in (1, 2):
+            w.write(conn, t, string_cdr('not a DiagnosticArray'))
+    shutil.move(tmp_path / 'extra' / 'extra.mcap', split / 'extra.mcap')
+    meta = yaml.safe_load((split / 'metadata.yaml').read_text())
+    meta['rosbag2_bagfile_information']['relative_file_paths'].append('extra.mcap')
+    (split / 'metadata.yaml').write_text(yaml.safe_dump(meta))
+    run = read_run(split)
+    assert len(run.frames) == rec.iterations
+    assert [('/servo/state' in w, ' 2 ' in w) for w in run.warnings] == [(True, True)]
+    err = io.StringIO()
+    with redirect_stderr(err):  # stops at the output, a directory, after reading the bag
+        assert video.main([str(split), '-o', str(tmp_path), '--quiet']) == 1
+    lines = err.getvalue().splitlines()
+    assert len(lines) == 2 and '/servo/state' in lines[0] and str(tmp_path) in lines[1]

@@ -75,6 +75,7 @@ class Run:
     error_norm the servo's ‖s − s*‖₂ of ``feature_set``; ``twists`` its twist (v, ω).
     states     the servo's state text; ``iterations`` its iteration count (its last state's).
     joints     joint positions by stamp (``joint_names`` order); ``oMc`` ground-truth poses.
+    warnings   what the bag reader left out or found inconsistent (for the user to see).
     """
 
     path: Path
@@ -91,6 +92,7 @@ class Run:
     oMc: dict = field(default_factory=dict)
     desired: Desired | None = None
     image_topic: str = IMAGE_TOPIC
+    warnings: list = field(default_factory=list)
 
     def t(self, stamp: int) -> float:
         """Return the seconds from the first frame to the image stamped ``stamp``."""
@@ -115,6 +117,12 @@ class Run:
 def output_path(bag_path, given: str | None, name: str) -> Path:
     """Return the output file: ``given``, else ``name`` beside the bag (in the run's folder)."""
     return Path(given) if given else Path(bag_path).resolve().parent / name
+
+
+def print_warnings(prog: str, run: Run) -> None:
+    """Print the bag reader's warnings of a run on stderr, one line each."""
+    for w in run.warnings:
+        print(f'{prog}: warning: {w}', file=sys.stderr, flush=True)
 
 
 def cli_error(prog: str, err: BaseException) -> int:
@@ -161,6 +169,7 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
     msgs: dict[str, list] = {t: [] for t in wanted}
     images: list[tuple[int, int]] = []   # (bag ns, stamp), bag order
     with bag(path) as reader:
+        warnings = list(reader.warnings)  # e.g. messages it does not read
         have = {topic_name(c.topic) for c in reader.connections}
         if image_topic not in have:
             raise BagError(f'{path}: no images: topic {image_topic} is not in the bag (it '
@@ -178,7 +187,8 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
                 raise BagError(f'cannot decode a message on {conn.topic}: {err}') from None
     if not images:
         raise BagError(f'{path}: no images: topic {image_topic} has no message')
-    run = Run(Path(path), [], feature_set=settings.servo.feature_set, image_topic=image_topic)
+    run = Run(Path(path), [], feature_set=settings.servo.feature_set, image_topic=image_topic,
+              warnings=warnings)
     if msgs[INFO_TOPIC]:
         info = msgs[INFO_TOPIC][0][1]
         try:

@@ -47,7 +47,8 @@ import numpy as np
 
 from sphere_servo.bag.bagio import bag, BagError, on_topics
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
-from sphere_servo.bag.run import cli_error, iter_frames, output_path, read_run, Run
+from sphere_servo.bag.run import (cli_error, iter_frames, output_path, print_warnings,
+                                  read_run, Run)
 from sphere_servo.core.targets import make_target
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
@@ -443,6 +444,7 @@ def main(argv=None) -> int:
             check_fps(opts.fps, '--fps')
         settings = load_settings(opts.config)
         run = read_run(opts.bag, settings, opts.image_topic, opts.every_image)
+        print_warnings('video', run)
         check_image_type(run)
         check_stamps(run)
         out = output_path(opts.bag, opts.output, 'servo.mp4')
