@@ -11,6 +11,8 @@ Each must read exactly what was written (topics, counts, times, order), or be re
 - messages of equal timestamps on several topics (a bag recorded on simulated time): read
   as recorded, as rosbag2 reads them (by time, then by record order), also from a db3
   without rosbag2's timestamp index (one another tool wrote);
+- ``custom_data`` as rosbag2's emitter (yaml-cpp) writes it: the strings ``42``, ``true``,
+  ``010`` unquoted; the bag is read, its custom data as recorded;
 - a servo run whose topics are stored relative (``servo/state``, as rosbag2 may store a
   name) beside an absolute image topic: the run read from it is the recorded one;
 - a split run whose ``servo/state`` changes type in its second file: the watch tools read
@@ -174,6 +176,21 @@ def test_messages_of_equal_times_are_read_as_recorded(tmp_path, storage, index):
     want = sorted(((topic, t, string_cdr(str(k))) for k, (topic, t) in enumerate(written)),
                   key=lambda m: m[1])  # stable: record order within a time
     assert got == want
+
+
+def test_custom_data_of_unquoted_strings(tmp_path):
+    with Writer(tmp_path / 'bag', version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection('/chatter', STRING, typestore=TS)
+        w.write(conn, 5, string_cdr('x'))
+    path = tmp_path / 'bag' / 'metadata.yaml'
+    text = path.read_text()
+    assert text.count('custom_data: null') == 1
+    path.write_text(text.replace('custom_data: null', 'custom_data:\n    run: 42\n'
+                                 '    ok: true\n    trial: 010\n    who: ann'))
+    with bag(tmp_path / 'bag') as reader:
+        assert reader.meta.custom_data == {'run': '42', 'ok': 'true', 'trial': '010',
+                                           'who': 'ann'}
+        assert [(c.topic, t) for c, t, _ in iter_raw(reader)] == [('/chatter', 5)]
 
 
 def test_run_of_relative_topics_is_the_recorded_run(tmp_path):
