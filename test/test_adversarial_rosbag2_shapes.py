@@ -11,6 +11,9 @@ Each must read exactly what was written (topics, counts, times, order), or be re
 - messages of equal timestamps on several topics (a bag recorded on simulated time): read
   as recorded, as rosbag2 reads them (by time, then by record order), also from a db3
   without rosbag2's timestamp index (one another tool wrote);
+- a split bag compressed per file (``compression_mode: FILE``, ``.db3.zstd`` /
+  ``.mcap.zstd``), its files listed out of order under the directory they were recorded in:
+  every message, in time order;
 - ``custom_data`` as rosbag2's emitter (yaml-cpp) writes it: the strings ``42``, ``true``,
   ``010`` unquoted; the bag is read, its custom data as recorded;
 - a servo run whose topics are stored relative (``servo/state``, as rosbag2 may store a
@@ -28,7 +31,7 @@ import sqlite3
 import struct
 import zlib
 
-from bag_cases import foxy_qos, STRING, string_cdr, TS
+from bag_cases import foxy_qos, split_bag, STRING, string_cdr, TS
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from run_bag import run_bag
@@ -176,6 +179,28 @@ def test_messages_of_equal_times_are_read_as_recorded(tmp_path, storage, index):
     want = sorted(((topic, t, string_cdr(str(k))) for k, (topic, t) in enumerate(written)),
                   key=lambda m: m[1])  # stable: record order within a time
     assert got == want
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_split_bag_compressed_per_file_listed_out_of_order(tmp_path, storage):
+    from backports import zstd
+    path = tmp_path / 'wbag'
+    stamps = split_bag(path, storage)
+    meta = yaml.safe_load((path / 'metadata.yaml').read_text())
+    info = meta['rosbag2_bagfile_information']
+    names = info['relative_file_paths']
+    for name in names:
+        (path / f'{name}.zstd').write_bytes(zstd.compress((path / name).read_bytes()))
+        (path / name).unlink()
+    info.update(compression_mode='FILE', compression_format='zstd',
+                relative_file_paths=[f'recorded_as/{n}.zstd' for n in reversed(names)])
+    (path / 'metadata.yaml').write_text(yaml.safe_dump(meta))
+    with bag(path) as reader:
+        got = [(c.topic, t, bytes(raw)) for c, t, raw in iter_raw(reader)]
+        assert reader.message_count == len(stamps) == 45
+    assert [t for _, t, _ in got] == stamps
+    assert [raw for *_, raw in got] == [string_cdr(f'{p}.{i}.{n}') for p in range(3)
+                                        for i in range(5) for n in ('AAA', 'BBB', 'CCC')]
 
 
 def test_custom_data_of_unquoted_strings(tmp_path):
