@@ -7,7 +7,8 @@ Each must read exactly what was written (topics, counts, times, order), or be re
   for a type whose definition it could not find, a ``jsonschema`` channel beside the ROS
   ones; the same ``unknown`` in a Jazzy sqlite3 ``message_definitions`` table;
 - MCAP chunks without message index records, statistics without per-channel counts
-  (both optional in the MCAP specification);
+  (both optional in the MCAP specification); unchunked messages (rosbag2's ``fastwrite``)
+  whose receive times go back: read by time, then in file order;
 - messages of equal timestamps on several topics (a bag recorded on simulated time): read
   as recorded, as rosbag2 reads them (by time, then by record order), also from a db3
   without rosbag2's timestamp index (one another tool wrote);
@@ -54,13 +55,14 @@ def _rec(op: int, body: bytes) -> bytes:
 
 
 def write_mcap(path: Path, schemas, channels, messages, index: bool = True,
-               channel_counts: bool = True) -> None:
+               channel_counts: bool = True, chunked: bool = True) -> None:
     """
     Write a finished MCAP file of one uncompressed chunk, as libmcap lays it out.
 
     ``schemas``: (id, name, encoding, data); ``channels``: (id, schema id, topic, message
     encoding); ``messages``: (channel id, log time, data), in file order. ``index``: message
-    index records after the chunk; ``channel_counts``: the statistics' per-channel counts.
+    index records after the chunk; ``channel_counts``: the statistics' per-channel counts;
+    ``chunked`` False: the messages straight in the data section (rosbag2's ``fastwrite``).
     """
     out = bytearray(MAGIC + _rec(0x01, _s('ros2') + _s('libmcap 1.4.0')))
     head = b''.join(_rec(0x03, struct.pack('<H', i) + _s(n) + _s(e) + _s(d))
@@ -74,11 +76,14 @@ def write_mcap(path: Path, schemas, channels, messages, index: bool = True,
         idx.setdefault(cid, []).append((t, len(chunk)))
         chunk += _rec(0x05, struct.pack('<HIQQ', cid, seq, t, t) + data)
     t0, t1 = min(m[1] for m in messages), max(m[1] for m in messages)
-    chunk_at = len(out)
-    out += _rec(0x06, struct.pack('<QQQI', t0, t1, len(chunk), zlib.crc32(chunk)) + _s('') +
-                struct.pack('<Q', len(chunk)) + bytes(chunk))
-    chunk_len, offsets = len(out) - chunk_at, {}
-    for cid, pairs in sorted(idx.items()) if index else ():
+    chunk_at, offsets = len(out), {}
+    if chunked:
+        out += _rec(0x06, struct.pack('<QQQI', t0, t1, len(chunk), zlib.crc32(chunk)) +
+                    _s('') + struct.pack('<Q', len(chunk)) + bytes(chunk))
+    else:
+        out += chunk[len(head):]
+    chunk_len = len(out) - chunk_at
+    for cid, pairs in sorted(idx.items()) if index and chunked else ():
         offsets[cid] = len(out)
         body = b''.join(struct.pack('<QQ', t, o) for t, o in pairs)
         out += _rec(0x07, struct.pack('<HI', cid, len(body)) + body)
@@ -89,10 +94,11 @@ def write_mcap(path: Path, schemas, channels, messages, index: bool = True,
     counts = b''.join(struct.pack('<HQ', c, len(p)) for c, p in sorted(idx.items())) \
         if channel_counts else b''
     out += _rec(0x0B, struct.pack('<QHIIIIQQ', len(messages), len(schemas), len(channels),
-                                  0, 0, 1, t0, t1) + _s(counts))
-    out += _rec(0x08, struct.pack('<QQQQ', t0, t1, chunk_at, chunk_len) +
-                _s(b''.join(struct.pack('<HQ', c, o) for c, o in sorted(offsets.items()))) +
-                struct.pack('<Q', mi_len) + _s('') + struct.pack('<QQ', len(chunk), len(chunk)))
+                                  0, 0, int(chunked), t0, t1) + _s(counts))
+    if chunked:
+        out += _rec(0x08, struct.pack('<QQQQ', t0, t1, chunk_at, chunk_len) + _s(b''.join(
+            struct.pack('<HQ', c, o) for c, o in sorted(offsets.items()))) +
+            struct.pack('<Q', mi_len) + _s('') + struct.pack('<QQ', len(chunk), len(chunk)))
     out += _rec(0x02, struct.pack('<QQI', summary_at, 0, 0)) + MAGIC
     path.write_bytes(bytes(out))
 
@@ -133,8 +139,9 @@ def test_mcap_schema_of_an_encoding_rosbags_does_not_know(tmp_path, schema, enco
 
 
 @pytest.mark.parametrize('kw', [{'index': False}, {'channel_counts': False},
-                                {'index': False, 'channel_counts': False}])
-def test_mcap_without_message_index_or_channel_counts(tmp_path, kw):
+                                {'index': False, 'channel_counts': False},
+                                {'chunked': False}])
+def test_mcap_without_indexes_counts_or_chunks(tmp_path, kw):
     _two_channel_mcap(tmp_path / 'bag', (2, STRING, 'ros2msg', STRING_DEF), **kw)
     assert read(tmp_path / 'bag') == (READ, {'/chatter': 3, '/other': 1},
                                       {'/chatter': STRING, '/other': STRING}, 4)

@@ -15,14 +15,21 @@ Pure module (no rclpy). ``rosbags``' readers go wrong on valid files in three wa
   message. Here such a chunk is indexed by reading it once on open;
 - MCAP statistics without per-channel counts (optional too) give every topic 0 messages:
   the counts are then taken from the chunks;
+- an MCAP file of unchunked messages (rosbag2's ``fastwrite`` preset) whose receive times
+  go back somewhere (the recorder's callbacks run on several threads) stops with an error
+  midway: here it is read by time, then in file order, as rosbag2 reads an indexed file;
 - sqlite3 messages of one timestamp come in no defined order (grouped by topic, in
   practice): rosbag2 reads them as recorded (``ORDER BY timestamp, id``), and so does this
   reader. Ties are common in bags recorded on simulated time (``--use-sim-time``).
 """
 from __future__ import annotations
 
+from array import array
 from collections import Counter
 from contextlib import contextmanager
+import struct
+
+import numpy as np
 
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 from rosbags.rosbag2 import storage_mcap, storage_sqlite3
@@ -75,6 +82,49 @@ class Mcap(McapReader):
                 counts.update(chunk.channel_count)
             self.connections = [c._replace(msgcount=counts.get(c.id, 0))
                                 for c in self.connections]
+        self._order = ()  # unknown until read (:meth:`_unchunked_order`)
+
+    def messages(self, connections, start: int | None = None, stop: int | None = None):
+        """Yield (connection, log time, data) by time, then in file order."""
+        if self._order == ():
+            self._order = None if self.chunks else self._unchunked_order()
+        if self._order is None:  # indexed, or unchunked in time order: rosbags reads it right
+            yield from super().messages(connections, start, stop)
+            return
+        wanted = {c.id: c for c in connections}
+        lo, hi = -1 if start is None else start, 2**64 if stop is None else stop
+        for t, pos in zip(*self._order):
+            t = int(t)
+            if lo <= t < hi:
+                self.bio.seek(int(pos))
+                size, cid = _MSG.unpack(self.bio.read(_MSG.size))[:2]
+                data = self.bio.read(size - 2)[20:]  # after sequence, log and publish time
+                if cid in wanted:
+                    yield wanted[cid], t, data
+
+    def _unchunked_order(self):
+        """(log time, message data offset) of an unchunked file out of time order, or None."""
+        bio, times, offsets = self.bio, array('Q'), array('Q')
+        bio.seek(self.data_start)
+        while bio.tell() < self.data_end:
+            at = bio.tell()
+            op, size = _REC.unpack(bio.read(_REC.size))
+            if op == 0x06:
+                return None  # chunks without chunk index: rosbags reads them
+            if op == 0x05:
+                times.append(struct.unpack('<Q', bio.read(14)[6:])[0])
+                offsets.append(at + 1)
+                size -= 14
+            bio.seek(size, 1)
+        times = np.frombuffer(times, dtype=np.uint64)
+        if not len(times) or np.all(times[1:] >= times[:-1]):
+            return None
+        keep = np.argsort(times, kind='stable')
+        return times[keep], np.frombuffer(offsets, dtype=np.uint64)[keep]
+
+
+_REC = struct.Struct('<BQ')
+_MSG = struct.Struct('<QH')  # a message record after its opcode: length, channel id
 
 
 class _Cursor:
