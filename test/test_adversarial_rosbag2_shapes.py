@@ -55,14 +55,16 @@ def _rec(op: int, body: bytes) -> bytes:
 
 
 def write_mcap(path: Path, schemas, channels, messages, index: bool = True,
-               channel_counts: bool = True, chunked: bool = True) -> None:
+               channel_counts: bool = True, chunked: bool = True, zero_stats: bool = False,
+               ) -> None:
     """
     Write a finished MCAP file of one uncompressed chunk, as libmcap lays it out.
 
     ``schemas``: (id, name, encoding, data); ``channels``: (id, schema id, topic, message
     encoding); ``messages``: (channel id, log time, data), in file order. ``index``: message
     index records after the chunk; ``channel_counts``: the statistics' per-channel counts;
-    ``chunked`` False: the messages straight in the data section (rosbag2's ``fastwrite``).
+    ``chunked`` False: the messages straight in the data section (rosbag2's ``fastwrite``);
+    ``zero_stats``: statistics of 0 messages.
     """
     out = bytearray(MAGIC + _rec(0x01, _s('ros2') + _s('libmcap 1.4.0')))
     head = b''.join(_rec(0x03, struct.pack('<H', i) + _s(n) + _s(e) + _s(d))
@@ -93,8 +95,9 @@ def write_mcap(path: Path, schemas, channels, messages, index: bool = True,
     out += head
     counts = b''.join(struct.pack('<HQ', c, len(p)) for c, p in sorted(idx.items())) \
         if channel_counts else b''
-    out += _rec(0x0B, struct.pack('<QHIIIIQQ', len(messages), len(schemas), len(channels),
-                                  0, 0, int(chunked), t0, t1) + _s(counts))
+    out += _rec(0x0B, struct.pack('<QHIIIIQQ', 0 if zero_stats else len(messages),
+                                  len(schemas), len(channels), 0, 0, int(chunked),
+                                  *((0, 0) if zero_stats else (t0, t1))) + _s(counts))
     if chunked:
         out += _rec(0x08, struct.pack('<QQQQ', t0, t1, chunk_at, chunk_len) + _s(b''.join(
             struct.pack('<HQ', c, o) for c, o in sorted(offsets.items()))) +
@@ -140,9 +143,12 @@ def test_mcap_schema_of_an_encoding_rosbags_does_not_know(tmp_path, schema, enco
 
 @pytest.mark.parametrize('kw', [{'index': False}, {'channel_counts': False},
                                 {'index': False, 'channel_counts': False},
-                                {'chunked': False}])
+                                {'chunked': False},
+                                {'channel_counts': False, 'zero_stats': True}])
 def test_mcap_without_indexes_counts_or_chunks(tmp_path, kw):
     _two_channel_mcap(tmp_path / 'bag', (2, STRING, 'ros2msg', STRING_DEF), **kw)
+    with bag(tmp_path / 'bag') as reader:
+        assert (reader.start_time, reader.end_time) == (10, 31)
     assert read(tmp_path / 'bag') == (READ, {'/chatter': 3, '/other': 1},
                                       {'/chatter': STRING, '/other': STRING}, 4)
 

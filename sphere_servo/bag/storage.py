@@ -14,7 +14,7 @@ Pure module (no rclpy). ``rosbags``' readers go wrong on valid files in three wa
   their message indexes, so the file reads as empty while its statistics count every
   message. Here such a chunk is indexed by reading it once on open;
 - MCAP statistics without per-channel counts (optional too) give every topic 0 messages:
-  the counts are then taken from the chunks;
+  counts and times are then taken from the chunks (whenever the statistics disagree);
 - an MCAP file of unchunked messages (rosbag2's ``fastwrite`` preset) whose receive times
   go back somewhere (the recorder's callbacks run on several threads) stops with an error
   midway: here it is read by time, then in file order, as rosbag2 reads an indexed file;
@@ -74,14 +74,20 @@ class Mcap(McapReader):
         for chunk in unindexed:
             src = storage_mcap.msgsrc(chunk, every, 0, 2**63 - 1, self.bio)
             chunk.channel_count.update(Counter(m.connection.id for m in src if m.offset))
+        counts = Counter()
+        for chunk in self.chunks:
+            counts.update(chunk.channel_count)
         stats = self.statistics
-        if self.chunks and (unindexed or stats is None or sum(
-                stats.channel_message_counts.values()) != stats.message_count):
-            counts = Counter()
-            for chunk in self.chunks:
-                counts.update(chunk.channel_count)
+        if self.chunks and counts != Counter(stats.channel_message_counts if stats else {}):
+            # the chunks' own counts (message indexes) over statistics that lack or miscount
             self.connections = [c._replace(msgcount=counts.get(c.id, 0))
                                 for c in self.connections]
+            n = sum(counts.values())
+            start = min(c.message_start_time for c in self.chunks)
+            end = max(c.message_end_time for c in self.chunks)
+            self.metadata = self.metadata._replace(
+                duration=end - start + 1 if n else 0, start_time=start if n else 2**63 - 1,
+                end_time=end + 1 if n else 0, message_count=n)
         self._order = ()  # unknown until read (:meth:`_unchunked_order`)
 
     def messages(self, connections, start: int | None = None, stop: int | None = None):
