@@ -15,6 +15,8 @@ Each must read exactly what was written (topics, counts, times, order), or be re
 - a split bag compressed per file (``compression_mode: FILE``, ``.db3.zstd`` /
   ``.mcap.zstd``), its files listed out of order under the directory they were recorded in:
   every message, in time order;
+- one storage file of a split bag, given alone: that file's messages only (as rosbag2
+  reads a file), not the whole bag's;
 - ``custom_data`` as rosbag2's emitter (yaml-cpp) writes it: the strings ``42``, ``true``,
   ``010`` unquoted; the bag is read, its custom data as recorded;
 - a servo run whose topics are stored relative (``servo/state``, as rosbag2 may store a
@@ -214,6 +216,20 @@ def test_split_bag_compressed_per_file_listed_out_of_order(tmp_path, storage):
     assert [t for _, t, _ in got] == stamps
     assert [raw for *_, raw in got] == [string_cdr(f'{p}.{i}.{n}') for p in range(3)
                                         for i in range(5) for n in ('AAA', 'BBB', 'CCC')]
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_one_file_of_a_split_bag_reads_that_file(tmp_path, storage):
+    path = tmp_path / 'wbag'
+    stamps = split_bag(path, storage)
+    name = f'wbag_1.{"mcap" if storage == "mcap" else "db3"}'
+    assert (path / name).is_file()
+    with bag(path / name) as reader:
+        got = [(t, bytes(raw)) for _, t, raw in iter_raw(reader)]
+        assert (reader.message_count, reader.warnings) == (15, [])
+    assert got == [(t, string_cdr(f'1.{i}.{n}'))
+                   for t, (i, n) in zip(stamps[15:30], [(i, n) for i in range(5)
+                                                        for n in ('AAA', 'BBB', 'CCC')])]
 
 
 def test_custom_data_of_unquoted_strings(tmp_path):

@@ -124,7 +124,10 @@ def _resolve(path: Path) -> tuple[Path, list[Path], BagMeta | None]:
         if (path.parent / 'metadata.yaml').is_file():
             meta = read_metadata(path.parent)
             if path.name in {Path(p).name for p in meta.relative_file_paths}:
-                return _resolve(path.parent)
+                # that file alone (one part of a split bag, as rosbag2 reads a file), with
+                # what metadata.yaml says of its topics
+                bag_dir, files, meta = _resolve(path.parent)
+                return bag_dir, [f for f in files if f.name == path.name], meta
         return path.parent, [path], None
     if (path / 'metadata.yaml').is_file():
         meta = read_metadata(path)
@@ -273,7 +276,8 @@ class BagReader:
             if m and m['msgdef'].format != MessageDefinitionFormat.NONE:
                 self._msgdefs.setdefault(msgtype, m['msgdef'])
         self.stored_count = sum(c.msgcount for c in self.connections)
-        if self.meta and self.meta.message_count != self.stored_count:
+        whole = self.meta and len(self.files) == len(self.meta.relative_file_paths)
+        if whole and self.meta.message_count != self.stored_count:
             self.warnings.append(f'metadata.yaml counts {self.meta.message_count} messages, the '
                                  f'storage holds {self.stored_count} (the storage is read)')
         if not self.stored_count:
