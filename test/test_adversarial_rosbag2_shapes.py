@@ -22,7 +22,9 @@ Each must read exactly what was written (topics, counts, times, order), or be re
 - a servo run whose topics are stored relative (``servo/state``, as rosbag2 may store a
   name) beside an absolute image topic: the run read from it is the recorded one;
 - a split run whose ``servo/state`` changes type in its second file: the watch tools read
-  the rest and say what they left out.
+  the rest and say what they left out;
+- a run whose ``servo/state`` (``camera/cmd_vel``) is of another type than the nodes
+  publish: refused in one line, not a traceback.
 """
 from __future__ import annotations
 
@@ -284,3 +286,23 @@ def test_watch_tools_say_what_the_reader_left_out(tmp_path):
         assert video.main([str(split), '-o', str(tmp_path), '--quiet']) == 1
     lines = err.getvalue().splitlines()
     assert len(lines) == 2 and '/servo/state' in lines[0] and str(tmp_path) in lines[1]
+
+
+@pytest.mark.parametrize('topic', ['/servo/state', '/camera/cmd_vel'])
+def test_watch_tools_refuse_a_run_topic_of_another_type(tmp_path, topic):
+    rec = run_bag(tmp_path)
+    other = tmp_path / 'other'
+    ts = typestore()
+    text = bytes(ts.serialize_cdr(ts.types[STRING](data='x'), STRING))
+    with bag(rec.bag) as reader, Writer(other, version=9,
+                                        storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {c.topic: w.add_connection(c.topic, STRING if c.topic == topic else c.msgtype,
+                                           typestore=ts) for c in reader.connections}
+        for c, t, raw in iter_raw(reader):
+            w.write(conns[c.topic], t, text if c.topic == topic else raw)
+    err = io.StringIO()
+    with redirect_stderr(err):
+        assert video.main([str(other), '-o', str(tmp_path / 'v.mp4'), '--quiet']) == 1
+    lines = err.getvalue().splitlines()
+    assert len(lines) == 1 and topic in lines[0] and STRING in lines[0], lines
+    assert not (tmp_path / 'v.mp4').exists()

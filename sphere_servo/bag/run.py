@@ -36,8 +36,9 @@ from sphere_servo.bag.bagio import (bag, BagError, image_to_array, iter_raw, on_
                                     topic_name)
 from sphere_servo.bag.desired import auto_desired
 from sphere_servo.bag.offline import (desired_topic, features_topic, Frame, header_ns,
-                                      IMAGE_TOPIC, INFO_TOPIC, MEAS_TOPIC, Pipeline, Settings,
-                                      STATE_TOPIC, TWIST_TOPIC)
+                                      IMAGE_TOPIC, INFO_TOPIC, JOINT_STATE, MEAS_TOPIC,
+                                      Pipeline, recorded_types, Settings, STATE_TOPIC,
+                                      TOPIC_TYPES, TWIST_TOPIC)
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.features import FEATURE_SETS
 from sphere_servo.pipeline.arm_sim import sim_scene
@@ -48,6 +49,8 @@ from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.sim.scene import Scene
 
 POSE_TOPIC, JOINTS_TOPIC = '/ground_truth/camera_pose', '/joint_states'
+RUN_TYPES = {**TOPIC_TYPES, POSE_TOPIC: 'geometry_msgs/msg/PoseStamped',
+             JOINTS_TOPIC: JOINT_STATE}
 #: the servo's states of an iteration: it answered an image while enabled
 ITERATION_STATES = tuple(s.value for s in (ServoState.SERVOING, ServoState.CONVERGED,
                                            ServoState.TARGET_LOST, ServoState.NO_DESIRED))
@@ -174,7 +177,8 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
         if image_topic not in have:
             raise BagError(f'{path}: no images: topic {image_topic} is not in the bag (it '
                            f'has {", ".join(sorted(have)) or "no topics"})')
-        for conn, ts, raw in iter_raw(reader, on_topics(reader, wanted | {image_topic})):
+        conns = recorded_types(on_topics(reader, wanted), RUN_TYPES)
+        for conn, ts, raw in iter_raw(reader, conns + on_topics(reader, [image_topic])):
             topic = topic_name(conn.topic)
             if topic == image_topic:
                 images.append((ts, header_stamp(raw)))  # decode only the header
