@@ -249,8 +249,13 @@ def test_custom_data_of_unquoted_strings(tmp_path):
         assert [(c.topic, t) for c, t, _ in iter_raw(reader)] == [('/chatter', 5)]
 
 
-def test_run_of_relative_topics_is_the_recorded_run(tmp_path):
-    rec = run_bag(tmp_path)
+@pytest.fixture(scope='module')
+def rec(tmp_path_factory):
+    """The servo run of :func:`run_bag`, recorded once for this module."""
+    return run_bag(tmp_path_factory.mktemp('run'))
+
+
+def test_run_of_relative_topics_is_the_recorded_run(tmp_path, rec):
     rel = tmp_path / 'relative'
     with bag(rec.bag) as reader, Writer(rel, version=9,
                                         storage_plugin=StoragePlugin.SQLITE3) as w:
@@ -266,8 +271,7 @@ def test_run_of_relative_topics_is_the_recorded_run(tmp_path):
     assert (run.states, run.meas) == (read_run(rec.bag).states, read_run(rec.bag).meas)
 
 
-def test_watch_tools_say_what_the_reader_left_out(tmp_path):
-    rec = run_bag(tmp_path)
+def test_watch_tools_say_what_the_reader_left_out(tmp_path, rec):
     split = tmp_path / 'split'
     shutil.copytree(rec.bag, split)
     with Writer(tmp_path / 'extra', version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -289,8 +293,7 @@ def test_watch_tools_say_what_the_reader_left_out(tmp_path):
 
 
 @pytest.mark.parametrize('topic', ['/servo/state', '/camera/cmd_vel'])
-def test_watch_tools_refuse_a_run_topic_of_another_type(tmp_path, topic):
-    rec = run_bag(tmp_path)
+def test_watch_tools_refuse_a_run_topic_of_another_type(tmp_path, rec, topic):
     other = tmp_path / 'other'
     ts = typestore()
     text = bytes(ts.serialize_cdr(ts.types[STRING](data='x'), STRING))
