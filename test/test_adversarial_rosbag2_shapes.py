@@ -6,6 +6,8 @@ Each must read exactly what was written (topics, counts, times, order), or be re
 - MCAP schemas of encodings ``rosbags`` does not know: rosbag2's ``unknown`` (or empty)
   for a type whose definition it could not find, a ``jsonschema`` channel beside the ROS
   ones; the same ``unknown`` in a Jazzy sqlite3 ``message_definitions`` table;
+- a definition recorded as ``ros2msg`` (``ros2idl``) with an empty text: the type is
+  decoded as Jazzy defines it, not as a message without fields;
 - MCAP chunks without message index records, statistics without per-channel counts
   (both optional in the MCAP specification); unchunked messages (rosbag2's ``fastwrite``)
   whose receive times go back: read by time, then in file order;
@@ -143,6 +145,16 @@ def test_mcap_schema_of_an_encoding_rosbags_does_not_know(tmp_path, schema, enco
     _two_channel_mcap(tmp_path / 'bag', schema, encoding)
     assert read(tmp_path / 'bag') == (READ, {'/chatter': 3, '/other': 1},
                                       {'/chatter': STRING, '/other': schema[1]}, played)
+
+
+@pytest.mark.parametrize('encoding', ['ros2msg', 'ros2idl'])
+def test_empty_definition_is_no_definition(tmp_path, encoding):
+    (tmp_path / 'bag').mkdir()
+    write_mcap(tmp_path / 'bag' / 'bag_0.mcap', [(1, STRING, encoding, b'')],
+               [(1, 1, '/chatter', 'cdr')], [(1, 5, string_cdr('hello'))])
+    with bag(tmp_path / 'bag') as reader:
+        got = [reader.deserialize(raw, c.msgtype).data for c, _, raw in iter_raw(reader)]
+    assert got == ['hello']
 
 
 @pytest.mark.parametrize('kw', [{'index': False}, {'channel_counts': False},

@@ -77,6 +77,16 @@ def unclosed(path: Path) -> str | None:
     return None
 
 
+def has_definition(msgdef: MessageDefinition) -> bool:
+    """
+    Whether a recorded message definition defines something.
+
+    An empty text (a type whose definition the recorder did not find) is no definition: the
+    type is then read as Jazzy defines it, not as a message without fields.
+    """
+    return msgdef.format != MessageDefinitionFormat.NONE and bool(msgdef.data.strip())
+
+
 def message_compression(st) -> str:
     """
     Return ``message`` if an open storage holds zstd-compressed messages, else ''.
@@ -246,7 +256,7 @@ class BagReader:
                     continue
                 m['count'] += sc.msgcount
                 m['conns'].append((st, sc))
-                if m['msgdef'].format == MessageDefinitionFormat.NONE:
+                if not has_definition(m['msgdef']):
                     m['msgdef'] = sc.msgdef
                 if sc.topic not in order:
                     order.append(sc.topic)
@@ -273,7 +283,7 @@ class BagReader:
                 owner=self)
             self.connections.append(conn)
             self._storage_of[conn.id] = m['conns'] if m else []
-            if m and m['msgdef'].format != MessageDefinitionFormat.NONE:
+            if m and has_definition(m['msgdef']):
                 self._msgdefs.setdefault(msgtype, m['msgdef'])
         self.stored_count = sum(c.msgcount for c in self.connections)
         whole = self.meta and len(self.files) == len(self.meta.relative_file_paths)
