@@ -263,7 +263,7 @@ def test_custom_data_of_unquoted_strings(tmp_path):
 
 @pytest.fixture(scope='module')
 def rec(tmp_path_factory):
-    """The servo run of :func:`run_bag`, recorded once for this module."""
+    """Return the servo run of :func:`run_bag`, recorded once for this module."""
     return run_bag(tmp_path_factory.mktemp('run'))
 
 
