@@ -8,6 +8,9 @@ Each must read exactly what was written (topics, counts, times, order), or be re
   ones; the same ``unknown`` in a Jazzy sqlite3 ``message_definitions`` table;
 - a definition recorded as ``ros2msg`` (``ros2idl``) with an empty text: the type is
   decoded as Jazzy defines it, not as a message without fields;
+- a Jazzy type recorded with another definition (an extra field; its RIHS01 hash differs
+  from Jazzy's): not played as the Jazzy type (a subscriber would misread its bytes),
+  refused when asked for by name, still decoded by its recorded definition;
 - MCAP chunks without message index records, statistics without per-channel counts
   (both optional in the MCAP specification); unchunked messages (rosbag2's ``fastwrite``)
   whose receive times go back: read by time, then in file order;
@@ -41,13 +44,15 @@ import zlib
 from bag_cases import foxy_qos, split_bag, STRING, string_cdr, TS
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from run_bag import run_bag
-from sphere_servo.bag.bagio import bag, iter_raw, open_bag, select, typestore
+from sphere_servo.bag.bagio import bag, BagError, iter_raw, open_bag, select, typestore
 from sphere_servo.bag.run import read_run
 from sphere_servo.experiments import video
 import yaml
 
 MAGIC = b'\x89MCAP0\r\n'
+BOOL = 'std_msgs/msg/Bool'
 STRING_DEF = b'string data\n'
 
 
@@ -155,6 +160,27 @@ def test_empty_definition_is_no_definition(tmp_path, encoding):
     with bag(tmp_path / 'bag') as reader:
         got = [reader.deserialize(raw, c.msgtype).data for c, _, raw in iter_raw(reader)]
     assert got == ['hello']
+
+
+@pytest.mark.parametrize('storage', [StoragePlugin.SQLITE3, StoragePlugin.MCAP])
+def test_type_of_another_definition_is_not_played(tmp_path, storage):
+    other = get_typestore(Stores.EMPTY)
+    other.register(get_types_from_msg('string data\nint32 extra\n', STRING))
+    raw = bytes(other.serialize_cdr(other.types[STRING](data='a', extra=7), STRING))
+    with Writer(tmp_path / 'bag', version=9, storage_plugin=storage) as w:
+        conn = w.add_connection('/chatter', STRING, msgdef='string data\nint32 extra\n',
+                                rihs01=other.hash_rihs01(STRING))
+        same = w.add_connection('/same', BOOL, typestore=TS)
+        w.write(conn, 5, raw)
+        w.write(same, 6, bytes(TS.serialize_cdr(TS.types[BOOL](data=True), BOOL)))
+    with bag(tmp_path / 'bag') as reader:
+        sel = select(reader)
+        assert ([c.topic for c in sel.connections], [s.topic for s in sel.skipped]) == \
+            (['/same'], ['/chatter'])
+        with pytest.raises(BagError, match='/chatter'):
+            select(reader, ['/chatter'])
+        msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in iter_raw(reader)]
+    assert [(m.data, getattr(m, 'extra', None)) for m in msgs] == [('a', 7), (True, None)]
 
 
 @pytest.mark.parametrize('kw', [{'index': False}, {'channel_counts': False},
