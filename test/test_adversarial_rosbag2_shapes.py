@@ -10,7 +10,8 @@ Each must read exactly what was written (topics, counts, times, order), or be re
   decoded as Jazzy defines it, not as a message without fields;
 - a Jazzy type recorded with another definition (an extra field; its RIHS01 hash differs
   from Jazzy's): not played as the Jazzy type (a subscriber would misread its bytes),
-  refused when asked for by name, still decoded by its recorded definition;
+  refused when asked for by name, still decoded by its recorded definition; beside a topic
+  of the same type recorded with Jazzy's definition, neither is decoded as the other;
 - MCAP chunks without message index records, statistics without per-channel counts
   (both optional in the MCAP specification); unchunked messages (rosbag2's ``fastwrite``)
   whose receive times go back: read by time, then in file order;
@@ -181,6 +182,20 @@ def test_type_of_another_definition_is_not_played(tmp_path, storage):
             select(reader, ['/chatter'])
         msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in iter_raw(reader)]
     assert [(m.data, getattr(m, 'extra', None)) for m in msgs] == [('a', 7), (True, None)]
+    # a split bag (one definition a file): file 0 has the other one, file 1 Jazzy's
+    (tmp_path / 'two').mkdir()
+    for i, (msgdef, data) in enumerate([(dict(msgdef='string data\nint32 extra\n',
+                                               rihs01=other.hash_rihs01(STRING)), raw),
+                                        (dict(typestore=TS), string_cdr('b'))]):
+        with Writer(tmp_path / f'part{i}', version=9, storage_plugin=storage) as w:
+            w.write(w.add_connection('/chatter', STRING, **msgdef), 5 + i, data)
+        (f,) = [f for f in (tmp_path / f'part{i}').iterdir() if f.name != 'metadata.yaml']
+        f.rename(tmp_path / 'two' / f'two_{i}{f.suffix}')
+    with bag(tmp_path / 'two') as reader:
+        assert reader.message_count == 2
+        for c, _, raw in iter_raw(reader):
+            with pytest.raises(BagError, match='two different definitions'):
+                reader.deserialize(raw, c.msgtype)
 
 
 @pytest.mark.parametrize('kw', [{'index': False}, {'channel_counts': False},

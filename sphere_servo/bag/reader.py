@@ -179,6 +179,7 @@ class BagReader:
         self._tmp = None
         self._typestores: dict = {}
         self._msgdefs: dict = {}
+        self._ambiguous: set = set()  # types the bag defines twice, differently
         self.stored_count = 0
         self.start_time, self.end_time = 2**63 - 1, 0
         self.is_open = False
@@ -283,8 +284,11 @@ class BagReader:
                 owner=self)
             self.connections.append(conn)
             self._storage_of[conn.id] = m['conns'] if m else []
-            if m and has_definition(m['msgdef']):
-                self._msgdefs.setdefault(msgtype, m['msgdef'])
+            for _, sc in m['conns'] if m else ():
+                if has_definition(sc.msgdef):  # one type, one definition (the bytes' layout)
+                    first = self._msgdefs.setdefault(msgtype, sc.msgdef)
+                    if first.data.split() != sc.msgdef.data.split():
+                        self._ambiguous.add(msgtype)
         self.stored_count = sum(c.msgcount for c in self.connections)
         whole = self.meta and len(self.files) == len(self.meta.relative_file_paths)
         if whole and self.meta.message_count != self.stored_count:
@@ -327,6 +331,9 @@ class BagReader:
         return None
 
     def _typestore_for(self, msgtype: str):
+        if msgtype in self._ambiguous:
+            raise BagError(f'the bag holds two different definitions of {msgtype}: its '
+                           'messages cannot all be decoded as one of them')
         if msgtype not in self._typestores:
             ts, why = None, None
             msgdef = self._msgdefs.get(msgtype)
