@@ -184,9 +184,9 @@ def test_type_of_another_definition_is_not_played(tmp_path, storage):
     assert [(m.data, getattr(m, 'extra', None)) for m in msgs] == [('a', 7), (True, None)]
     # a split bag (one definition a file): file 0 has the other one, file 1 Jazzy's
     (tmp_path / 'two').mkdir()
-    for i, (msgdef, data) in enumerate([(dict(msgdef='string data\nint32 extra\n',
-                                               rihs01=other.hash_rihs01(STRING)), raw),
-                                        (dict(typestore=TS), string_cdr('b'))]):
+    parts = [({'msgdef': 'string data\nint32 extra\n', 'rihs01': other.hash_rihs01(STRING)},
+              raw), ({'typestore': TS}, string_cdr('b'))]
+    for i, (msgdef, data) in enumerate(parts):
         with Writer(tmp_path / f'part{i}', version=9, storage_plugin=storage) as w:
             w.write(w.add_connection('/chatter', STRING, **msgdef), 5 + i, data)
         (f,) = [f for f in (tmp_path / f'part{i}').iterdir() if f.name != 'metadata.yaml']
