@@ -13,7 +13,10 @@ hash of ``metadata.yaml`` where it has the topic (QoS normalised, see
 :mod:`sphere_servo.bag.metadata`). Counts are the storage's own.
 
 A bag is a directory with ``metadata.yaml`` (parsed strictly), a directory of storage files
-without it, or a bare ``.mcap`` / ``.db3`` file (as ``ros2 bag info`` accepts them). A storage
+without it, or a bare ``.mcap`` / ``.db3`` file (as ``ros2 bag info`` accepts them; one
+file of a split bag is that file alone, with what ``metadata.yaml`` says of its topics).
+The storage files are read by :mod:`sphere_servo.bag.storage` (``rosbags``' readers, made to
+read what they misread). A storage
 file that was never closed (an MCAP file without its footer, a sqlite3 file with a live WAL or
 journal: the recorder was killed, or is still running) is refused with the command that
 recovers it (``reindex``). The reader offers what ``rosbags``' ``AnyReader`` offers to the

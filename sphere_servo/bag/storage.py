@@ -1,7 +1,7 @@
 """
 The storage readers of ``rosbags``, made to read every storage file rosbag2 writes.
 
-Pure module (no rclpy). ``rosbags``' readers go wrong on valid files in three ways:
+Pure module (no rclpy). ``rosbags``' readers go wrong on valid files in these ways:
 
 - a message definition of an encoding they do not know makes the whole file unreadable (a
   ``KeyError`` on open). rosbag2 records a type whose definition it cannot find with the
