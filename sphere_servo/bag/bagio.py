@@ -24,8 +24,10 @@ from sphere_servo.bag.reader import BagReader, one_line, typestore
 from sphere_servo.vision.image import image_from_buffer, LAYOUTS
 
 __all__ = [
-    'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'select_connections',
-    'Skipped', 'Selection', 'select', 'summary', 'format_summary', 'iter_raw',
+    'BagError', 'check_new_output', 'open_bag', 'bag', 'topic_name', 'on_topics',
+    'select_connections',
+    'Skipped', 'Selection', 'other_definition', 'select', 'summary', 'format_summary',
+    'iter_raw',
     'image_to_array', 'iter_images', 'typestore', 'INFINITE_NS', 'qos_time',
 ]
 
@@ -67,6 +69,17 @@ def bag(path: str | Path) -> Iterator[BagReader]:
         yield reader
     finally:
         reader.close()
+
+
+def on_topics(reader: BagReader, topics: Iterable[str]) -> list[Connection]:
+    """
+    Return the connections on any of ``topics``, by fully qualified name ([] if none).
+
+    A bag may store a topic relative (``camera/image_raw``, as rosbag2 may write it): it is
+    the topic ``/camera/image_raw`` all the same.
+    """
+    wanted = {topic_name(t) for t in topics}
+    return [c for c in reader.connections if topic_name(c.topic) in wanted]
 
 
 def _match(conns: list[Connection], wanted: str) -> list[Connection]:
@@ -123,13 +136,32 @@ class Selection:
         return sum(c.msgcount for c in self.connections)
 
 
+def other_definition(conn: Connection) -> str | None:
+    """
+    Return why a topic's bytes are not of the Jazzy type of its name, or None.
+
+    The bag records each type's hash (RIHS01, from Iron on): one that differs from Jazzy's
+    for a Jazzy type means another definition (fields added, removed or retyped), whose
+    bytes a subscriber of the Jazzy type would misread.
+    """
+    ts = typestore()
+    if not conn.digest.startswith('RIHS01_') or conn.msgtype not in ts.fielddefs:
+        return None
+    jazzy = ts.hash_rihs01(conn.msgtype)
+    if conn.digest == jazzy:
+        return None
+    return (f'it was recorded with another definition of {conn.msgtype} (type hash '
+            f'{conn.digest[:15]}..., in Jazzy {jazzy[:15]}...): its bytes would be misread')
+
+
 def select(reader: BagReader, topics: Iterable[str] | None = None, unplayable=None,
            ) -> Selection:
     """
     Select what to play: ``topics`` (all when None/empty) minus what cannot be played.
 
     ``unplayable(connection)`` returns why a topic cannot be played, or None (default: only
-    CDR serialization is played). As ``ros2 bag play``, a topic that cannot be played is
+    CDR serialization is played; never a Jazzy type recorded with another definition, see
+    :func:`other_definition`). As ``ros2 bag play``, a topic that cannot be played is
     skipped, with its reason in :attr:`Selection.skipped`, unless it was asked for by name:
     then :class:`BagError` says why.
     """
@@ -139,7 +171,7 @@ def select(reader: BagReader, topics: Iterable[str] | None = None, unplayable=No
     def why(c):
         if c.ext.serialization_format != 'cdr':
             return f'serialization format {c.ext.serialization_format!r} is not cdr'
-        return unplayable(c) if unplayable is not None else None
+        return other_definition(c) or (unplayable(c) if unplayable is not None else None)
 
     keep, skipped = [], []
     for c in conns:

@@ -203,6 +203,13 @@ def parse_metadata(text: str, where: str = 'metadata.yaml') -> BagMeta:
         raise BagError(f'{where} is not valid YAML: {" ".join(str(err).split())}') from None
     info = _Fields(_Fields(doc, where).get('rosbag2_bagfile_information', object),
                    'rosbag2_bagfile_information')
+    custom = info.node.get('custom_data')
+    if isinstance(custom, dict) and not all(isinstance(x, str) for kv in custom.items()
+                                            for x in kv):
+        # rosbag2's emitter (yaml-cpp) writes a string value "42" or "true" unquoted: read
+        # every scalar of custom_data as written, a string (as rosbag2 reads it back)
+        info.node['custom_data'] = yaml.load(text, Loader=yaml.BaseLoader)[
+            'rosbag2_bagfile_information']['custom_data']
     version = info.get('version', int)
     if not 1 <= version <= VERSION:
         raise BagError(f'metadata version {version} is not supported (1 to {VERSION}, Jazzy)')

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sphere_servo.bag.bagio import BagError, iter_raw, select_connections
+from sphere_servo.bag.bagio import BagError, iter_raw, on_topics, select_connections, topic_name
 from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.measurement import Observation
 from sphere_servo.pipeline.common import Refusal, stamp_ns
@@ -26,6 +26,11 @@ IMAGE_TOPIC, INFO_TOPIC = '/camera/image_raw', '/camera/camera_info'
 MEAS_TOPIC, TWIST_TOPIC = '/detector/measurement', '/camera/cmd_vel'
 STATE_TOPIC = '/servo/state'
 TOL = 1e-9
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+#: the type the nodes publish on each topic of a run (``/features/...``: JointState)
+TOPIC_TYPES = {INFO_TOPIC: 'sensor_msgs/msg/CameraInfo', MEAS_TOPIC: JOINT_STATE,
+               TWIST_TOPIC: 'geometry_msgs/msg/TwistStamped',
+               STATE_TOPIC: 'diagnostic_msgs/msg/DiagnosticArray'}
 
 
 def features_topic(name: str) -> str:
@@ -36,6 +41,23 @@ def features_topic(name: str) -> str:
 def desired_topic(name: str) -> str:
     """Return the topic of a feature set's desired features, ``/features/<name>/desired``."""
     return f'/features/{name}/desired'
+
+
+def recorded_types(conns, types: dict[str, str]) -> list:
+    """
+    Return ``conns``; BagError if one is of another type than ``types`` (topic → type) says.
+
+    The nodes publish each topic of a run as one type; a bag holding another type there (a
+    different node, a different release) is not read as if it were the run's.
+    """
+    for c in conns:
+        want = types.get(topic_name(c.topic))
+        if want is None and topic_name(c.topic).startswith('/features/'):
+            want = JOINT_STATE
+        if want is not None and c.msgtype != want:
+            raise BagError(f'topic {c.topic} holds {c.msgtype}, not the {want} the nodes '
+                           'publish on it')
+    return conns
 
 
 def header_ns(h) -> int:
@@ -162,7 +184,7 @@ class Pipeline:
 
 def read_topic(reader, topic: str) -> list[tuple[int, object]]:
     """Return (bag ns, rosbags message) of every message on ``topic``; [] if not in the bag."""
-    conns = [c for c in reader.connections if c.topic == topic]
+    conns = recorded_types(on_topics(reader, [topic]), TOPIC_TYPES)
     if not conns:
         return []
     out = []

@@ -13,7 +13,10 @@ hash of ``metadata.yaml`` where it has the topic (QoS normalised, see
 :mod:`sphere_servo.bag.metadata`). Counts are the storage's own.
 
 A bag is a directory with ``metadata.yaml`` (parsed strictly), a directory of storage files
-without it, or a bare ``.mcap`` / ``.db3`` file (as ``ros2 bag info`` accepts them). A storage
+without it, or a bare ``.mcap`` / ``.db3`` file (as ``ros2 bag info`` accepts them; one
+file of a split bag is that file alone, with what ``metadata.yaml`` says of its topics).
+The storage files are read by :mod:`sphere_servo.bag.storage` (``rosbags``' readers, made to
+read what they misread). A storage
 file that was never closed (an MCAP file without its footer, a sqlite3 file with a live WAL or
 journal: the recorder was killed, or is still running) is refused with the command that
 recovers it (``reindex``). The reader offers what ``rosbags``' ``AnyReader`` offers to the
@@ -35,6 +38,7 @@ from rosbags.typesys import get_types_from_idl, get_types_from_msg, get_typestor
 
 from sphere_servo.bag import mcap
 from sphere_servo.bag.metadata import BagError, BagMeta, normal_qos, read_metadata, STORAGES
+from sphere_servo.bag.storage import storage_reader
 
 _TYPESTORE = None
 ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
@@ -74,6 +78,16 @@ def unclosed(path: Path) -> str | None:
         if side.is_file() and side.stat().st_size > 0:
             return f'its {side.name} holds data not yet in the database (never closed)'
     return None
+
+
+def has_definition(msgdef: MessageDefinition) -> bool:
+    """
+    Whether a recorded message definition defines something.
+
+    An empty text (a type whose definition the recorder did not find) is no definition: the
+    type is then read as Jazzy defines it, not as a message without fields.
+    """
+    return msgdef.format != MessageDefinitionFormat.NONE and bool(msgdef.data.strip())
 
 
 def message_compression(st) -> str:
@@ -123,7 +137,10 @@ def _resolve(path: Path) -> tuple[Path, list[Path], BagMeta | None]:
         if (path.parent / 'metadata.yaml').is_file():
             meta = read_metadata(path.parent)
             if path.name in {Path(p).name for p in meta.relative_file_paths}:
-                return _resolve(path.parent)
+                # that file alone (one part of a split bag, as rosbag2 reads a file), with
+                # what metadata.yaml says of its topics
+                bag_dir, files, meta = _resolve(path.parent)
+                return bag_dir, [f for f in files if f.name == path.name], meta
         return path.parent, [path], None
     if (path / 'metadata.yaml').is_file():
         meta = read_metadata(path)
@@ -165,6 +182,7 @@ class BagReader:
         self._tmp = None
         self._typestores: dict = {}
         self._msgdefs: dict = {}
+        self._ambiguous: set = set()  # types the bag defines twice, differently
         self.stored_count = 0
         self.start_time, self.end_time = 2**63 - 1, 0
         self.is_open = False
@@ -183,8 +201,6 @@ class BagReader:
 
     def open_files(self) -> BagReader:
         """Open the storage files and pair their connections (raises BagError)."""
-        from rosbags.rosbag2.storage_mcap import McapReader
-        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
         try:
             for f in self._storage_paths():
                 why = unclosed(f)
@@ -194,7 +210,7 @@ class BagReader:
                                    + REINDEX_HINT.format(self.bag_dir))
                 if f.suffix == '.db3':
                     check_sqlite(f)
-                st = (McapReader if f.suffix == '.mcap' else Sqlite3Reader)(f)
+                st = storage_reader(f)
                 try:
                     st.open()
                 except Exception as err:  # rosbags raises several types: all "unreadable"
@@ -244,7 +260,7 @@ class BagReader:
                     continue
                 m['count'] += sc.msgcount
                 m['conns'].append((st, sc))
-                if m['msgdef'].format == MessageDefinitionFormat.NONE:
+                if not has_definition(m['msgdef']):
                     m['msgdef'] = sc.msgdef
                 if sc.topic not in order:
                     order.append(sc.topic)
@@ -271,10 +287,14 @@ class BagReader:
                 owner=self)
             self.connections.append(conn)
             self._storage_of[conn.id] = m['conns'] if m else []
-            if m and m['msgdef'].format != MessageDefinitionFormat.NONE:
-                self._msgdefs.setdefault(msgtype, m['msgdef'])
+            for _, sc in m['conns'] if m else ():
+                if has_definition(sc.msgdef):  # one type, one definition (the bytes' layout)
+                    first = self._msgdefs.setdefault(msgtype, sc.msgdef)
+                    if first.data.split() != sc.msgdef.data.split():
+                        self._ambiguous.add(msgtype)
         self.stored_count = sum(c.msgcount for c in self.connections)
-        if self.meta and self.meta.message_count != self.stored_count:
+        whole = self.meta and len(self.files) == len(self.meta.relative_file_paths)
+        if whole and self.meta.message_count != self.stored_count:
             self.warnings.append(f'metadata.yaml counts {self.meta.message_count} messages, the '
                                  f'storage holds {self.stored_count} (the storage is read)')
         if not self.stored_count:
@@ -314,6 +334,9 @@ class BagReader:
         return None
 
     def _typestore_for(self, msgtype: str):
+        if msgtype in self._ambiguous:
+            raise BagError(f'the bag holds two different definitions of {msgtype}: its '
+                           'messages cannot all be decoded as one of them')
         if msgtype not in self._typestores:
             ts, why = None, None
             msgdef = self._msgdefs.get(msgtype)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from sphere_servo.bag.bagio import bag, BagError, topic_name
+from sphere_servo.bag.bagio import bag, BagError, on_topics, topic_name
 from sphere_servo.bag.desired import Desired, find_desired
 from sphere_servo.bag.offline import (Cameras, desired_topic, features_topic, header_ns,
                                       IMAGE_TOPIC, INFO_TOPIC, iter_image_msgs, MEAS_TOPIC,
@@ -47,7 +47,7 @@ class Result:
 
 def recorded_sets(reader) -> list[str]:
     """Return the feature sets recorded in a bag."""
-    have = {c.topic for c in reader.connections}
+    have = {topic_name(c.topic) for c in reader.connections}
     return [n for n in FEATURE_SETS if features_topic(n) in have]
 
 
@@ -63,7 +63,7 @@ def regenerate(path, settings: Settings, sets: list[str] | None = None,
     from sphere_servo.sim.arm import CAMERA_FRAME
     pipe = Pipeline(settings)
     with bag(path) as reader:
-        if topic_name(info_topic) not in {c.topic for c in reader.connections}:
+        if not on_topics(reader, [info_topic]):
             raise BagError(f'topic {topic_name(info_topic)} (the intrinsics) not in bag')
         names = list(sets or recorded_sets(reader) or ['s_n'])
         recorded = {t: read_topic(reader, t) for t in

@@ -32,6 +32,7 @@ from sphere_servo.bag.metadata import (BagError, BagMeta, FileMeta, metadata_tex
                                        read_metadata, TopicMeta, write_metadata)
 from sphere_servo.bag.reader import (check_sqlite, message_compression, one_line,
                                      storage_files, unclosed)
+from sphere_servo.bag.storage import storage_reader
 
 
 @dataclass
@@ -58,9 +59,7 @@ def _unlocked(path: Path) -> None:
 
 def _file_meta(path: Path) -> tuple[list[TopicMeta], FileMeta, str]:
     """Read a closed storage file: its topics (with counts), span, and compression mode."""
-    from rosbags.rosbag2.storage_mcap import McapReader
-    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
-    st = (McapReader if path.suffix == '.mcap' else Sqlite3Reader)(path)
+    st = storage_reader(path)
     try:
         st.open()
     except Exception as err:  # rosbags raises several types: all "unreadable"

@@ -12,9 +12,11 @@ selected as stored or by their fully qualified name (``--topics AAA`` and ``--to
 both select a topic stored as ``AAA``). Messages are republished as their serialized bytes
 (never deserialized), with the bag's timing scaled by ``--rate``, on publishers with the QoS
 the recording publishers offered (adapted as ``ros2 bag play`` does). A topic whose message
-type is not installed is skipped with a warning naming it, as ``ros2 bag play`` does, unless
-``--topics`` asks for it: then replay stops with an error. Before playing, replay says what
-it will play; a selection that plays nothing is an error (exit 1). ``--clock`` publishes
+type is not installed is skipped with a warning naming it, as ``ros2 bag play`` does, and so
+is a Jazzy type recorded with another definition (its type hash differs: subscribers would
+misread its bytes), unless ``--topics`` asks for it: then replay stops with an error.
+Before playing, replay says what it will play; a selection that plays nothing is an error
+(exit 1). ``--clock`` publishes
 ``/clock`` from bag time (at HZ, default 40, and before each message), so nodes with
 ``use_sim_time`` follow the bag.
 """

@@ -32,11 +32,13 @@ import sys
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.bag.bagio import bag, BagError, image_to_array, iter_raw, topic_name
+from sphere_servo.bag.bagio import (bag, BagError, image_to_array, iter_raw, on_topics,
+                                    topic_name)
 from sphere_servo.bag.desired import auto_desired
 from sphere_servo.bag.offline import (desired_topic, features_topic, Frame, header_ns,
-                                      IMAGE_TOPIC, INFO_TOPIC, MEAS_TOPIC, Pipeline, Settings,
-                                      STATE_TOPIC, TWIST_TOPIC)
+                                      IMAGE_TOPIC, INFO_TOPIC, JOINT_STATE, MEAS_TOPIC,
+                                      Pipeline, recorded_types, Settings, STATE_TOPIC,
+                                      TOPIC_TYPES, TWIST_TOPIC)
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.features import FEATURE_SETS
 from sphere_servo.pipeline.arm_sim import sim_scene
@@ -47,6 +49,8 @@ from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.sim.scene import Scene
 
 POSE_TOPIC, JOINTS_TOPIC = '/ground_truth/camera_pose', '/joint_states'
+RUN_TYPES = {**TOPIC_TYPES, POSE_TOPIC: 'geometry_msgs/msg/PoseStamped',
+             JOINTS_TOPIC: JOINT_STATE}
 #: the servo's states of an iteration: it answered an image while enabled
 ITERATION_STATES = tuple(s.value for s in (ServoState.SERVOING, ServoState.CONVERGED,
                                            ServoState.TARGET_LOST, ServoState.NO_DESIRED))
@@ -74,6 +78,7 @@ class Run:
     error_norm the servo's ‖s − s*‖₂ of ``feature_set``; ``twists`` its twist (v, ω).
     states     the servo's state text; ``iterations`` its iteration count (its last state's).
     joints     joint positions by stamp (``joint_names`` order); ``oMc`` ground-truth poses.
+    warnings   what the bag reader left out or found inconsistent (for the user to see).
     """
 
     path: Path
@@ -90,6 +95,7 @@ class Run:
     oMc: dict = field(default_factory=dict)
     desired: Desired | None = None
     image_topic: str = IMAGE_TOPIC
+    warnings: list = field(default_factory=list)
 
     def t(self, stamp: int) -> float:
         """Return the seconds from the first frame to the image stamped ``stamp``."""
@@ -114,6 +120,12 @@ class Run:
 def output_path(bag_path, given: str | None, name: str) -> Path:
     """Return the output file: ``given``, else ``name`` beside the bag (in the run's folder)."""
     return Path(given) if given else Path(bag_path).resolve().parent / name
+
+
+def print_warnings(prog: str, run: Run) -> None:
+    """Print the bag reader's warnings of a run on stderr, one line each."""
+    for w in run.warnings:
+        print(f'{prog}: warning: {w}', file=sys.stderr, flush=True)
 
 
 def cli_error(prog: str, err: BaseException) -> int:
@@ -160,24 +172,27 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
     msgs: dict[str, list] = {t: [] for t in wanted}
     images: list[tuple[int, int]] = []   # (bag ns, stamp), bag order
     with bag(path) as reader:
-        have = {c.topic for c in reader.connections}
+        warnings = list(reader.warnings)  # e.g. messages it does not read
+        have = {topic_name(c.topic) for c in reader.connections}
         if image_topic not in have:
             raise BagError(f'{path}: no images: topic {image_topic} is not in the bag (it '
                            f'has {", ".join(sorted(have)) or "no topics"})')
-        conns = [c for c in reader.connections if c.topic in wanted | {image_topic}]
-        for conn, ts, raw in iter_raw(reader, conns):
-            if conn.topic == image_topic:
+        conns = recorded_types(on_topics(reader, wanted), RUN_TYPES)
+        for conn, ts, raw in iter_raw(reader, conns + on_topics(reader, [image_topic])):
+            topic = topic_name(conn.topic)
+            if topic == image_topic:
                 images.append((ts, header_stamp(raw)))  # decode only the header
                 continue
-            if conn.topic == INFO_TOPIC and msgs[INFO_TOPIC]:
+            if topic == INFO_TOPIC and msgs[INFO_TOPIC]:
                 continue  # the intrinsics do not change in a run
             try:
-                msgs[conn.topic].append((ts, reader.deserialize(raw, conn.msgtype)))
+                msgs[topic].append((ts, reader.deserialize(raw, conn.msgtype)))
             except Exception as err:  # rosbags raises several types; all mean "corrupt"
                 raise BagError(f'cannot decode a message on {conn.topic}: {err}') from None
     if not images:
         raise BagError(f'{path}: no images: topic {image_topic} has no message')
-    run = Run(Path(path), [], feature_set=settings.servo.feature_set, image_topic=image_topic)
+    run = Run(Path(path), [], feature_set=settings.servo.feature_set, image_topic=image_topic,
+              warnings=warnings)
     if msgs[INFO_TOPIC]:
         info = msgs[INFO_TOPIC][0][1]
         try:
@@ -268,8 +283,7 @@ def iter_frames(run: Run):
     pending: dict[int, tuple] = {}
     nxt = 0
     with bag(run.path) as reader:
-        conns = [c for c in reader.connections if c.topic == run.image_topic]
-        for conn, _, raw in iter_raw(reader, conns):
+        for conn, _, raw in iter_raw(reader, on_topics(reader, [run.image_topic])):
             k = index.get(header_stamp(raw))
             if k is None or k < nxt or k in pending:
                 continue  # not a frame, or a re-publication of one

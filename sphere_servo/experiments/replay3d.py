@@ -46,8 +46,8 @@ import pinocchio as pin
 
 from sphere_servo.bag.bagio import BagError
 from sphere_servo.bag.offline import load_settings
-from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, read_run, Run,
-                                  run_scene)
+from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, print_warnings,
+                                  read_run, Run, run_scene)
 from sphere_servo.experiments.video import check_stamps, prepare_output, unrecorded_iterations
 from sphere_servo.pipeline.arm_sim import sim_arm
 from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, package_dirs, PACKAGE_SCHEME,
@@ -335,6 +335,7 @@ def main(argv=None) -> int:
     from sphere_servo.pipeline.config import ConfigError
     try:
         run = read_run(opts.bag, load_settings(opts.config), every_image=opts.every_image)
+        print_warnings('replay3d', run)
         check_stamps(run)
         params = load_arm_params(opts.config)
         arm = sim_arm(params)

@@ -45,9 +45,10 @@ import time
 import cv2
 import numpy as np
 
-from sphere_servo.bag.bagio import bag, BagError
+from sphere_servo.bag.bagio import bag, BagError, on_topics
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
-from sphere_servo.bag.run import cli_error, iter_frames, output_path, read_run, Run
+from sphere_servo.bag.run import (cli_error, iter_frames, output_path, print_warnings,
+                                  read_run, Run)
 from sphere_servo.core.targets import make_target
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
@@ -321,7 +322,7 @@ def check_stamps(run: Run) -> None:
 def check_image_type(run: Run) -> None:
     """Refuse (BagError) a run whose image topic holds other than ``sensor_msgs/msg/Image``."""
     with bag(run.path) as reader:
-        types = {c.msgtype for c in reader.connections if c.topic == run.image_topic}
+        types = {c.msgtype for c in on_topics(reader, [run.image_topic])}
     if types - {IMAGE_TYPE}:
         raise BagError(f'{run.path}: {run.image_topic} holds {", ".join(sorted(types))}: the '
                        f'video needs raw images ({IMAGE_TYPE})')
@@ -443,6 +444,7 @@ def main(argv=None) -> int:
             check_fps(opts.fps, '--fps')
         settings = load_settings(opts.config)
         run = read_run(opts.bag, settings, opts.image_topic, opts.every_image)
+        print_warnings('video', run)
         check_image_type(run)
         check_stamps(run)
         out = output_path(opts.bag, opts.output, 'servo.mp4')
