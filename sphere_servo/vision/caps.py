@@ -171,6 +171,11 @@ def match_centroid(sphere: SphereMeasurement, m0: np.ndarray, rho: float,
     return m
 
 
+# (cos ψ, sin ψ, 1) at 96 angles: a cap's rim and the limb as one product with a frame
+_PSI = np.linspace(0.0, 2 * math.pi, 96, endpoint=False)
+_CIRCLE = np.vstack([np.cos(_PSI), np.sin(_PSI), np.ones_like(_PSI)])
+
+
 def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.ndarray,
                   cov: np.ndarray, w_sr: np.ndarray, tol_px: float) -> float:
     """
@@ -189,26 +194,27 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     m = (sr - math.sqrt(max(sr * sr - float(s @ s) + 1.0, 0.0))) * ray - s
     m /= math.sqrt(float(m @ m))
     T, F = tangent_basis(m), tangent_basis(b)
-    psi = np.linspace(0.0, 2 * math.pi, 96, endpoint=False)
-    cs, sn = np.cos(psi), np.sin(psi)
-    ring = T[2][:, None] * math.cos(rho) + math.sin(rho) * (T[0][:, None] * cs
-                                                            + T[1][:, None] * sn)
-    limb = -rd * b[:, None] + math.sqrt(1.0 - rd * rd) * (F[0][:, None] * cs
-                                                          + F[1][:, None] * sn)
+    sin_rho, cos_rho = math.sin(rho), math.cos(rho)
+    k = math.sqrt(1.0 - rd * rd)
+    # (3, 96) each: the rim's normals and the limb's, as products with the frames
+    ring = T.T @ (_CIRCLE * np.array([[sin_rho], [sin_rho], [cos_rho]]))
+    limb = F.T @ (_CIRCLE * np.array([[k], [k], [-rd]]))
     # the rim's points that face the camera (n·P < 0, P = s + n), the limb's in the cap
-    n = np.hstack([ring[:, ring.T @ s < -1.0], limb[:, limb.T @ m >= math.cos(rho)]])
+    n = np.hstack([ring[:, s @ ring < -1.0], limb[:, m @ limb >= cos_rho]])
     conf = cov >= 0.5
     if n.shape[1] < 3 or not conf.any():
         return 1.0 if conf.any() else 0.0
-    scale = 1.0 / math.sqrt(float(np.median(w_sr[conf])))
+    w = np.sort(w_sr[conf])
+    scale = 1.0 / math.sqrt(0.5 * float(w[(len(w) - 1) // 2] + w[len(w) // 2]))   # median
     G = F @ (n + s[:, None])
     H = cv2.convexHull((G[:2] / G[2] * scale).T.astype(np.float32))[:, 0].astype(float)
     g = F @ q[:, conf]
     g = g[:2] / g[2] * scale
     # the distance outside a convex polygon is at least the largest over its edges' lines
-    e = np.roll(H, -1, axis=0) - H
-    nrm = np.column_stack([e[:, 1], -e[:, 0]]) / np.maximum(np.hypot(*e.T), 1e-12)[:, None]
-    off = np.einsum('ij,ij->i', nrm, H)
+    e = np.vstack((H[1:], H[:1])) - H
+    nrm = e[:, ::-1] * np.array([1.0, -1.0]) / np.maximum(np.hypot(e[:, 0], e[:, 1]),
+                                                           1e-12)[:, None]
+    off = (nrm * H).sum(axis=1)
     if float(nrm[0] @ H.mean(axis=0)) > off[0]:
         nrm, off = -nrm, -off                           # outward normals
     d = (nrm @ g - off[:, None]).max(axis=0)
