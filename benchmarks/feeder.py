@@ -8,10 +8,10 @@ and ``servo`` in one process, as ``launcher --single-process`` runs the pipeline
 (:func:`sphere_servo.ros.params.run`, consumers constructed first).
 
 The feeder stands for arm_sim: it publishes ``camera/camera_info`` then ``camera/image_raw``
-(arm_sim's order; QoS :data:`sphere_servo.ros.qos.SENSOR`) from a wall timer, each frame a
-message built anew, both stamped with the system clock right before they are published, so
-that the servo's ``image_age`` (its clock at the twist's publication − the image stamp) is
-the pipeline's image stamp → twist publish latency; and it takes the twists of
+(arm_sim's order and writer QoS, :func:`sphere_servo.ros.qos.writer`) from a wall timer,
+each frame a message built anew, both stamped with the system clock right before they are
+published, so that the servo's ``image_age`` (its clock at the twist's publication − the
+image stamp) is the pipeline's image stamp → twist publish latency; and it takes the twists of
 ``camera/cmd_vel`` with their ``MessageInfo``, as arm_sim does, so that it spins on the
 executor arm_sim gets (:mod:`sphere_servo.ros.executors`: in one process, apart from the
 other nodes, on a thread of its own). It shows the desired pose until
@@ -35,7 +35,7 @@ def feeder_node(rate: float):
     from sphere_servo.core.targets import special_sphere
     from sphere_servo.experiments.scenarios import CMO_DESIRED, CMO_FAR_START
     from sphere_servo.ros.conversions import camera_info_from_intrinsics, image_from_array
-    from sphere_servo.ros.qos import COMMAND, SENSOR
+    from sphere_servo.ros.qos import COMMAND, writer
     from sphere_servo.vision.renderer import Renderer
     from std_msgs.msg import Header
     from std_srvs.srv import Trigger
@@ -50,8 +50,10 @@ def feeder_node(rate: float):
             self.frames = [renderer.render(p) for p in (CMO_DESIRED, CMO_FAR_START)]
             self.far = False
             self.stamps: list[float] = []
-            self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', SENSOR)
-            self.pub_image = self.create_publisher(Image, 'camera/image_raw', SENSOR)
+            self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info',
+                                                  writer('camera/camera_info'))
+            self.pub_image = self.create_publisher(Image, 'camera/image_raw',
+                                                   writer('camera/image_raw'))
             self.create_service(Trigger, '~/far', self._go_far)
             self.create_timer(1.0 / rate, self._tick)
             # with their MessageInfo, as arm_sim takes them (see the module docstring)

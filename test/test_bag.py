@@ -142,6 +142,51 @@ def test_record_complete_bag(launch, test_node, tmp_path, storage):
                           .reshape(H, W, 3))
 
 
+def test_a_recorder_matched_late_gets_what_a_pipeline_writer_sent_before(launch, test_node,
+                                                                          tmp_path):
+    """
+    The pipeline's stream writers (``qos.writer``) serve a late recorder their history.
+
+    Under load a writer matches a new reader seconds after the reader counts it matched
+    (a lost discovery message waits for a heartbeat): the launcher's teach image was sent
+    in that gap and missed the bag. Here the gap is the whole time before the recorder
+    starts: 5 frames sent then by a writer with the image topic's writer QoS are in the bag,
+    with the 5 sent after, in order; the same 5 sent by a volatile writer of the readers'
+    QoS (what the writers were) are not, and the 5 after are.
+    """
+    from sphere_servo.ros import qos
+    node, spin = test_node
+    tl = node.create_publisher(Image, '/camera/image_raw', qos.writer('camera/image_raw'))
+    vol = node.create_publisher(Image, '/plain/image_raw', qos.TOPICS['camera/image_raw'])
+
+    def send(i: int) -> None:
+        img = Image(height=2, width=2, encoding='rgb8', step=6, data=bytes(range(i, i + 12)))
+        img.header.frame_id = f'f{i}'
+        tl.publish(img)
+        vol.publish(img)
+    for i in range(5):
+        send(i)
+        spin(0.02)
+    spin(0.5)
+    out = tmp_path / 'bag'
+    rec = launch('record', '-o', str(out), '--topics', '/camera/image_raw', '/plain/image_raw')
+    spin(15.0, until=lambda: tl.get_subscription_count() > 0 and vol.get_subscription_count() > 0
+         and rec.log().count('subscribed to') == 2)
+    assert vol.get_subscription_count() > 0, rec.log()
+    spin(1.0)
+    for i in range(5, 10):
+        send(i)
+        spin(0.05)
+    spin(1.5)
+    assert rec.stop() == 0, rec.log()
+    got = {t: [] for t in ('/camera/image_raw', '/plain/image_raw')}
+    with AnyReader([out], default_typestore=TS) as reader:
+        for conn, _, raw in reader.messages():
+            got[conn.topic].append(reader.deserialize(raw, conn.msgtype).header.frame_id)
+    assert got['/camera/image_raw'] == [f'f{i}' for i in range(10)], rec.log()
+    assert got['/plain/image_raw'] == [f'f{i}' for i in range(5, 10)], rec.log()
+
+
 @pytest.mark.parametrize('sig,storage', [(signal.SIGINT, 'mcap'),
                                          (signal.SIGTERM, 'sqlite3')])
 def test_interrupted_recording_is_readable(launch, test_node, tmp_path, sig, storage):

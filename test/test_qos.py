@@ -8,13 +8,16 @@ subscribe with ``qos.observer`` of it.
   each topic, the kind and depth of :data:`TOPICS` (and transient-local where it is).
 - ``test_every_topic_is_reliable_and_only_the_desired_is_latched``: the choices the README
   justifies (reliable everywhere; small sensor and command depths; monitors deep).
+- ``test_a_streams_writer_is_transient_local_and_keeps_at_least_its_readers_depth``: what a
+  recorder matched late needs (README, "Transient-local writers").
 - ``test_each_node_creates_its_topics_with_the_tables_profile``: the four node classes,
   constructed in this process, publish and subscribe every topic of theirs that the table
   names with exactly its profile (depth included).
 - ``test_the_running_nodes_offer_and_request_the_table``: over ROS, in both launcher modes,
   each topic's publishers and subscriptions in the graph have the table's reliability and
-  durability (discovery does not carry the depth), and the pipeline's subscriptions exist
-  (rclpy's time source subscribes ``/clock`` best effort, which a reliable writer serves).
+  durability (the writers :func:`qos.writer`'s; discovery does not carry the depth), and the
+  pipeline's subscriptions exist (rclpy's time source subscribes ``/clock`` best effort,
+  which a reliable writer serves).
 """
 from __future__ import annotations
 
@@ -152,9 +155,11 @@ def test_the_running_nodes_offer_and_request_the_table(single_process, ros_env, 
         for name, (pubs, subs) in endpoints().items():
             profile = expected[name][0]
             # rclpy's time source subscribes /clock best effort (not ours)
-            for info in pubs + (subs if name != '/clock' else []):
+            writer = qos.writer(expected[name][1])
+            for want, info in ([(writer, i) for i in pubs]
+                               + [(profile, i) for i in (subs if name != '/clock' else [])]):
                 got = (info.qos_profile.reliability, info.qos_profile.durability)
-                assert got == (profile.reliability, profile.durability), (name, info)
+                assert got == (want.reliability, want.durability), (name, info)
                 checked += 1
         # the pipeline's own subscriptions are there: images, measurements, features, twists
         subscribed = {n for n, (_, subs) in endpoints().items() if subs}
@@ -167,9 +172,17 @@ def test_the_running_nodes_offer_and_request_the_table(single_process, ros_env, 
     assert all(c == 0 for c in codes.values()), (codes, (tmp_path / 'launch.log').read_text())
 
 
-def test_a_deeper_writer_keeps_its_topics_policies():
-    for topic, profile in qos.WRITERS.items():
-        table = qos.TOPICS[topic]
-        assert (profile.reliability, profile.durability) == (table.reliability,
-                                                             table.durability), topic
-        assert profile.depth > table.depth, topic
+def test_a_streams_writer_is_transient_local_and_keeps_at_least_its_readers_depth():
+    """The writers a late recorder needs: transient-local, reliable, as deep as the readers."""
+    assert set(qos.WRITERS) == set(qos.TOPICS) - {
+        '/clock', '/diagnostics', 'features/<set>/desired', '/servo/enabled', 'arm_sim/markers'}
+    for topic, table in qos.TOPICS.items():
+        profile = qos.writer(topic)
+        assert profile.reliability == table.reliability == ReliabilityPolicy.RELIABLE, topic
+        assert profile.depth >= table.depth, topic
+        if topic in qos.WRITERS:
+            assert profile.durability == DurabilityPolicy.TRANSIENT_LOCAL, topic
+            assert table.durability == DurabilityPolicy.VOLATILE, topic
+        else:
+            assert profile is table, topic
+    assert qos.writer('camera/image_raw').depth == 30

@@ -101,7 +101,7 @@ from sphere_servo.ros.guard import guarded, guarded_service
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.markers import marker_array, MARKERS_QOS, WORLD_FRAME
 from sphere_servo.ros.params import declare_all, install_set_callback, run
-from sphere_servo.ros.qos import CLOCK, COMMAND, MONITOR, WRITERS
+from sphere_servo.ros.qos import CLOCK, COMMAND, writer
 from sphere_servo.ros.vectors import ENABLED_QOS
 from sphere_servo.sim.arm import CAMERA_FRAME
 from std_msgs.msg import Bool, Header
@@ -124,11 +124,13 @@ class ArmSim(Node):
         install_set_callback(self, lambda: core.params, lambda p: setattr(core, 'params', p))
         # QoS of each topic: sphere_servo.ros.qos
         self.pub_image = self.create_publisher(Image, 'camera/image_raw',
-                                               WRITERS['camera/image_raw'])
+                                               writer('camera/image_raw'))
         self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info',
-                                              WRITERS['camera/camera_info'])
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', MONITOR)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose', MONITOR)
+                                              writer('camera/camera_info'))
+        self.pub_joints = self.create_publisher(JointState, 'joint_states',
+                                                writer('joint_states'))
+        self.pub_pose = self.create_publisher(PoseStamped, 'ground_truth/camera_pose',
+                                              writer('ground_truth/camera_pose'))
         self.pub_clock = self.create_publisher(Clock, '/clock', CLOCK)
         self.pub_markers = self.create_publisher(MarkerArray, '~/markers', MARKERS_QOS)
         if core.markers_error:

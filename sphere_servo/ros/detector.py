@@ -37,7 +37,7 @@ from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, install_set_callback, run
-from sphere_servo.ros.qos import PIPELINE, SENSOR
+from sphere_servo.ros.qos import SENSOR, writer
 from sphere_servo.ros.vectors import measurement_msg
 from sphere_servo.vision.draw import draw_detection
 
@@ -52,8 +52,10 @@ class DetectorNode(Node):
         self.core = DetectorCore(declare_all(self, DetectorParams))
         install_set_callback(self, lambda: self.core.params,
                              lambda p: setattr(self.core, 'params', p))
-        self.pub = self.create_publisher(JointState, 'detector/measurement', PIPELINE)
-        self.pub_overlay = self.create_publisher(Image, 'detector/overlay', SENSOR)
+        self.pub = self.create_publisher(JointState, 'detector/measurement',
+                                         writer('detector/measurement'))
+        self.pub_overlay = self.create_publisher(Image, 'detector/overlay',
+                                                 writer('detector/overlay'))
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, SENSOR)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, SENSOR)

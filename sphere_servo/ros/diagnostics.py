@@ -17,7 +17,7 @@ from __future__ import annotations
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from sphere_servo.pipeline.common import NodeStatus
-from sphere_servo.ros.qos import DIAGNOSTICS, MONITOR
+from sphere_servo.ros.qos import DIAGNOSTICS, writer
 from std_msgs.msg import Header
 
 DIAGNOSTICS_PERIOD = 1.0  # s, wall clock
@@ -45,7 +45,8 @@ class StatusPublisher:
         self.node = node
         self.name = f'{node.get_name()}: state'
         self.hardware_id = hardware_id
-        self.pub_state = node.create_publisher(DiagnosticArray, '~/state', MONITOR)
+        self.pub_state = node.create_publisher(DiagnosticArray, '~/state',
+                                               writer('<node>/state'))
         self.pub_diagnostics = node.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS)
         self.status = status
         self._sent: tuple | None = None  # (level, message) last on /diagnostics

@@ -42,7 +42,7 @@ from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
-from sphere_servo.ros.qos import PIPELINE, SENSOR
+from sphere_servo.ros.qos import PIPELINE, SENSOR, writer
 from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
                                       measurement_from_msg)
 from std_msgs.msg import Header
@@ -57,7 +57,8 @@ class FeaturesNode(Node):
     def __init__(self, **kwargs):
         super().__init__('features', **kwargs)
         self.core = FeaturesCore(declare_all(self, FeaturesParams))
-        self.pubs = {name: self.create_publisher(JointState, f'features/{name}', PIPELINE)
+        self.pubs = {name: self.create_publisher(JointState, f'features/{name}',
+                                                 writer('features/<set>'))
                      for name in self.core.names}
         self.pubs_desired = {name: self.create_publisher(JointState, desired_topic(name),
                                                          DESIRED_QOS)

@@ -29,6 +29,10 @@ carries:
 
 :func:`observer` gives a subscription that matches a topic's publishers with a history of
 its own (the supervisor, tests): the same reliability and durability, another depth.
+
+The writers (:data:`WRITERS`, :func:`writer`) of every stream but ``/clock`` and
+``/diagnostics`` are transient-local with the table's depth or more: a recorder matched late
+still gets what they sent; the table's readers are volatile and get only new messages.
 """
 from __future__ import annotations
 
@@ -43,8 +47,6 @@ def _reliable(depth: int, latched: bool = False) -> QoSProfile:
 
 
 SENSOR = _reliable(5)
-SENSOR_WRITER = _reliable(30)
-SENSOR_INFO_WRITER = _reliable(100)
 COMMAND = _reliable(10)
 PIPELINE = _reliable(10)
 MONITOR = _reliable(100)
@@ -71,11 +73,34 @@ TOPICS = {
 }
 
 
-# topics whose writer keeps a deeper history than the table's readers (``SENSOR_WRITER``)
+def _writer(reader: QoSProfile, depth: int | None = None) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth or reader.depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+# a stream's writer: transient-local, so that a recorder that adapts to it (ours, rosbag2's)
+# gets on matching what was sent before: under load a writer matches a new reader up to a
+# discovery heartbeat (seconds) after that reader already reports itself matched, and the
+# launcher's run (teach image included) begins then. The readers of the table stay
+# volatile: a node never gets stale frames. The camera keeps more (the scheduler may hold a
+# recorder back for a second at 30 Hz).
 WRITERS = {
-    'camera/image_raw': SENSOR_WRITER,
-    'camera/camera_info': SENSOR_INFO_WRITER,
+    'camera/image_raw': _writer(SENSOR, 30),
+    'camera/camera_info': _writer(SENSOR, 100),
+    'detector/overlay': _writer(SENSOR),
+    'camera/cmd_vel': _writer(COMMAND),
+    'detector/measurement': _writer(PIPELINE),
+    'features/<set>': _writer(PIPELINE),
+    'joint_states': _writer(MONITOR),
+    'ground_truth/camera_pose': _writer(MONITOR),
+    '<node>/state': _writer(MONITOR),
 }
+
+
+def writer(topic: str) -> QoSProfile:
+    """Return the profile the publisher of ``topic`` (a key of :data:`TOPICS`) offers."""
+    return WRITERS.get(topic, TOPICS[topic])
 
 
 def observer(profile: QoSProfile, depth: int = 1000) -> QoSProfile:

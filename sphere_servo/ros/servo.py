@@ -56,7 +56,7 @@ from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
-from sphere_servo.ros.qos import COMMAND, PIPELINE
+from sphere_servo.ros.qos import PIPELINE, writer
 from sphere_servo.ros.vectors import (desired_from_msg, DESIRED_QOS, desired_topic,
                                       ENABLED_QOS, features_from_msg)
 from sphere_servo.sim.arm import CAMERA_FRAME
@@ -76,7 +76,8 @@ class ServoNode(Node):
         self.core = ServoCore(declare_all(self, ServoParams))
         fset = self.core.feature_set
         self.frame_id = CAMERA_FRAME  # of the last image answered
-        self.pub_twist = self.create_publisher(TwistStamped, 'camera/cmd_vel', COMMAND)
+        self.pub_twist = self.create_publisher(TwistStamped, 'camera/cmd_vel',
+                                               writer('camera/cmd_vel'))
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.on_tick(0.0).status())
         self.log = ThrottledLog(self.get_logger(), period=2.0)
         # every frame gets its answer (a 60 Hz camera loses none); which frames are usable

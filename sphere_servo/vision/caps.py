@@ -212,8 +212,8 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     g = g[:2] / g[2] * scale
     # the distance outside a convex polygon is at least the largest over its edges' lines
     e = np.vstack((H[1:], H[:1])) - H
-    nrm = e[:, ::-1] * np.array([1.0, -1.0]) / np.maximum(np.hypot(e[:, 0], e[:, 1]),
-                                                           1e-12)[:, None]
+    length = np.maximum(np.hypot(e[:, 0], e[:, 1]), 1e-12)
+    nrm = e[:, ::-1] * np.array([1.0, -1.0]) / length[:, None]
     off = (nrm * H).sum(axis=1)
     if float(nrm[0] @ H.mean(axis=0)) > off[0]:
         nrm, off = -nrm, -off                           # outward normals
