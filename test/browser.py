@@ -44,9 +44,15 @@ def chromium() -> str:
     return path
 
 
+def _profile():
+    # chromium's helper processes (crashpad) may still write to the profile after the
+    # browser exits: a cleanup that races them is no failure of the page under test
+    return tempfile.TemporaryDirectory(prefix='chromium-', ignore_cleanup_errors=True)
+
+
 def screenshot(url: str, out: Path, size: tuple[int, int], budget_ms: int = 4000) -> np.ndarray:
     """Screenshot of ``url`` at ``size`` (W, H) after ``budget_ms`` of virtual time, rgb."""
-    with tempfile.TemporaryDirectory(prefix='chromium-') as profile:
+    with _profile() as profile:
         cmd = [chromium(), *FLAGS, f'--user-data-dir={profile}',
                f'--window-size={size[0]},{size[1]}', f'--virtual-time-budget={budget_ms}',
                f'--screenshot={out}', url]
@@ -76,7 +82,7 @@ def load(url: str, seconds: float = 4.0) -> PageLoad:
         os.dup2(a, 3)                                    # already on 3 or 4 moves too)
         os.dup2(b, 4)
 
-    with tempfile.TemporaryDirectory(prefix='chromium-') as profile:
+    with _profile() as profile:
         proc = subprocess.Popen([chromium(), *FLAGS, f'--user-data-dir={profile}',
                                  '--remote-debugging-pipe', 'about:blank'],
                                 preexec_fn=fds, close_fds=False, stdout=subprocess.DEVNULL,

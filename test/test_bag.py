@@ -142,8 +142,8 @@ def test_record_complete_bag(launch, test_node, tmp_path, storage):
                           .reshape(H, W, 3))
 
 
-def test_a_recorder_matched_late_gets_what_a_pipeline_writer_sent_before(launch, test_node,
-                                                                          tmp_path):
+def test_a_recorder_matched_late_gets_what_a_pipeline_writer_sent_before(
+        launch, test_node, tmp_path):
     """
     The pipeline's stream writers (``qos.writer``) serve a late recorder their history.
 
