@@ -73,29 +73,16 @@ TOPICS = {
 }
 
 
-def _writer(reader: QoSProfile, depth: int | None = None) -> QoSProfile:
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth or reader.depth,
-                      reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
 # a stream's writer: transient-local, so that a recorder that adapts to it (ours, rosbag2's)
 # gets on matching what was sent before: under load a writer matches a new reader up to a
-# discovery heartbeat (seconds) after that reader already reports itself matched, and the
-# launcher's run (teach image included) begins then. The readers of the table stay
-# volatile: a node never gets stale frames. The camera keeps more (the scheduler may hold a
-# recorder back for a second at 30 Hz).
-WRITERS = {
-    'camera/image_raw': _writer(SENSOR, 30),
-    'camera/camera_info': _writer(SENSOR, 100),
-    'detector/overlay': _writer(SENSOR),
-    'camera/cmd_vel': _writer(COMMAND),
-    'detector/measurement': _writer(PIPELINE),
-    'features/<set>': _writer(PIPELINE),
-    'joint_states': _writer(MONITOR),
-    'ground_truth/camera_pose': _writer(MONITOR),
-    '<node>/state': _writer(MONITOR),
-}
+# discovery heartbeat (seconds) after that reader already reports itself matched. The
+# table's readers stay volatile: a node never gets stale frames. The camera keeps more (the
+# scheduler may hold a recorder back for a second at 30 Hz).
+_DEEPER = {'camera/image_raw': 30, 'camera/camera_info': 100}
+WRITERS = {topic: _reliable(_DEEPER.get(topic, reader.depth), latched=True)
+           for topic, reader in TOPICS.items()
+           if reader.durability == DurabilityPolicy.VOLATILE
+           and topic not in ('/clock', '/diagnostics')}
 
 
 def writer(topic: str) -> QoSProfile:
