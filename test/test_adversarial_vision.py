@@ -9,7 +9,6 @@ the image shows P2 (the partial pose ᶜR_o, hence θu, would be wrong with no s
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.targets import special_sphere
@@ -49,11 +48,6 @@ def test_marks_are_found_where_the_target_puts_them():
     assert np.hypot(*(true_uv('P1') - true_uv('P2'))) > 20.0  # far apart: a swap shows
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    'the marks are told apart by colour alone, and red (220, 30, 30) / blue (30, 60, 220) '
-    'map onto each other under an R<->B swap: the detector reports P1 at P2 and P2 at P1. '
-    'Not local: it needs marks whose colours are not swap-symmetric, or a colour test that '
-    'tells (30, 30, 220) from (30, 60, 220) under shading'))
 def test_an_rgb_frame_labelled_bgr_does_not_swap_the_marks():
     """Either a mark is not reported (target lost, the servo stops) or it is at its place."""
     m = detect(Renderer(CAM, TARGET).render(CMO), 'bgr8')

@@ -124,7 +124,7 @@ class Detection:
 _STAGE = {Reason.NO_BLOB: 0, Reason.TOO_SMALL: 1, Reason.CUT_BY_BORDER: 2,
           Reason.NOT_BODY_COLOURED: 3, Reason.NOT_ELLIPTICAL: 4, Reason.LOW_CONTRAST: 5,
           Reason.FEW_EDGE_POINTS: 5, Reason.EDGE_COVERAGE: 6, Reason.RESIDUAL: 6,
-          Reason.NOT_A_SPHERE: 7, Reason.MARKS_INCONSISTENT: 8}
+          Reason.NOT_A_SPHERE: 7, Reason.MARKS_INCONSISTENT: 8, Reason.COLOURS_SWAPPED: 9}
 
 
 def _check_distinct(colors: dict, body_tol: float, mark_tol: float) -> None:
@@ -363,6 +363,9 @@ class Detector:
             why = self.geometry.check(sphere, q)
             if why is not None:
                 return why
+        swapped = self.marks.swapped(marks, rgb, sil)
+        if swapped:          # each mark found at the other's place: not a measurement
+            return NotDetected(Reason.COLOURS_SWAPPED, swapped)
         return _Candidate(sil, C_n, sphere, marks, len(q), self.bounds.sure(sil), lift)
 
     def _marks_beside(self, img, encoding: str, rgb, cand: _Candidate) -> bool:

@@ -32,6 +32,7 @@ from sphere_servo.vision.cone import limb_distance
 from sphere_servo.vision.image import chroma_test, components, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.silhouette import Silhouette
+from sphere_servo.vision.swap import core_colour, SwapCheck
 
 _K3 = np.ones((3, 3), np.uint8)
 
@@ -51,6 +52,8 @@ class Mark:
                    visible).
     missing        why it is not visible (a :class:`NotDetected` naming the mark), None
                    when visible.
+    colour         (3,) rgb of its core, None when not visible: it tells a mark from
+                   another one's colour swapped (:mod:`~sphere_servo.vision.swap`).
     """
 
     name: str
@@ -60,6 +63,7 @@ class Mark:
     area_px: float = 0.0
     partial: bool = False
     missing: NotDetected | None = None
+    colour: np.ndarray | None = None
 
     @classmethod
     def lost(cls, name: str, reason: Reason, detail: str = '', area_px: float = 0.0,
@@ -195,6 +199,7 @@ class MarkFinder:
         self._mark_w = np.zeros((4 * len(tests), len(tests)), np.float32)
         for i, (_, w) in enumerate(tests):
             self._mark_w[4 * i:4 * i + 4, i] = w
+        self.swapped = SwapCheck(colors, self.mark_names, self.chroma_tol)
 
     def not_visible(self, reason: Reason = Reason.MARK_NOT_FOUND, detail: str = '') -> dict:
         """Name → an invisible :class:`Mark`, for every mark, and why."""
@@ -339,6 +344,7 @@ class MarkFinder:
                 # an off-surface ball (CC tip): its filled hull, binary (its rim may blend
                 # with the background, whose chromaticity says nothing of coverage)
                 alpha = full[yy, xx].astype(np.float64)
+                pix = roi[gy0:gy1, gx0:gx1][yy, xx]
             area = float(alpha.sum())
             if area < self.min_mark_px:
                 marks[name] = Mark.lost(name, Reason.MARK_NOT_FOUND,
@@ -381,7 +387,8 @@ class MarkFinder:
                 marks[name] = Mark.lost(name, Reason.MARK_FACES_AWAY,
                                         'its centre is outside the camera field', area)
                 continue
-            marks[name] = Mark(name, uv, ray, True, area, partial=rim is not None)
+            marks[name] = Mark(name, uv, ray, True, area, partial=rim is not None,
+                               colour=core_colour(pix))
         return marks
 
     def cap_centre(self, sphere: SphereMeasurement, q: np.ndarray, w: np.ndarray,

@@ -26,6 +26,7 @@ class Reason(Enum):
     NOT_A_SPHERE = 'fitted conic is not a sphere image'
     MARKS_INCONSISTENT = 'blob rejected: its marks do not fit the target'
     AMBIGUOUS = 'several sphere-like blobs, none with a mark'
+    COLOURS_SWAPPED = "the marks' colours are the target's with red and blue swapped"
     # a mark's reasons ({mark}: its name)
     MARK_NOT_FOUND = 'mark {mark} not found'
     MARK_FACES_AWAY = 'mark {mark} faces away from the camera'
