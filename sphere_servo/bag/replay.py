@@ -4,6 +4,7 @@ replay: republish a rosbag2 (MCAP or sqlite3, ours or one by ``ros2 bag record``
     ros2 run sphere_servo replay BAG [--topics T ...] [--rate R | --max-rate] [--loop]
                                  [--clock [HZ]] [--remap OLD:=NEW ...] [--delay S]
                                  [--wait-for-subscribers [S]]
+                                 [--answer TOPIC:=ANSWER [--answer-timeout S]]
 
 ``BAG`` is a bag directory (with or without ``metadata.yaml``) or a bare ``.mcap`` /
 ``.db3`` file; every rosbag2 of Jazzy or older is read (:mod:`sphere_servo.bag.reader`:
@@ -19,6 +20,14 @@ Before playing, replay says what it will play; a selection that plays nothing is
 (exit 1). ``--clock`` publishes
 ``/clock`` from bag time (at HZ, default 40, and before each message), so nodes with
 ``use_sim_time`` follow the bag.
+
+``--answer TOPIC:=ANSWER`` plays each message of TOPIC (as published, after ``--remap``) only
+once the previous one was answered: a message on ANSWER with the same header stamp (the
+pipeline passes each image's header on), or ``--answer-timeout`` seconds (default 5)
+passed. A node whose reader keeps only the newest frames (the detector: 5) then gets every
+frame however loaded the machine is, as in the lockstep run that recorded them; bag timing
+still applies (``--max-rate``: as fast as answered). Messages left unanswered are counted,
+and make the exit code 1. (:mod:`sphere_servo.bag.answers`)
 """
 from __future__ import annotations
 
@@ -27,6 +36,7 @@ import math
 import sys
 import time
 
+from sphere_servo.bag.answers import parse_answer
 from sphere_servo.bag.bagio import (BagError, format_summary, iter_raw, open_bag, select,
                                     summary, topic_name)
 from sphere_servo.bag.metadata import INFINITE
@@ -49,7 +59,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument('--wait-for-subscribers', nargs='?', type=float, const=10.0, default=None,
                    metavar='S', help='wait (at most S s, default 10) until every publisher '
                    'has a subscriber')
+    p.add_argument('--answer', default=None, metavar='TOPIC:=ANSWER',
+                   help='after each message of TOPIC, wait for the message of ANSWER with '
+                   'its header stamp')
+    p.add_argument('--answer-timeout', type=float, default=5.0, metavar='S',
+                   help='longest wait for an answer (default 5 s)')
     opts = p.parse_args(argv)
+    if not 0 < opts.answer_timeout < math.inf:
+        p.error('--answer-timeout must be a finite number of seconds > 0, got '
+                f'{opts.answer_timeout}')
     if not opts.max_rate and not opts.rate > 0:
         p.error('--rate must be > 0')
     if opts.clock is not None and not opts.clock > 0:
@@ -188,6 +206,7 @@ class Player:
         self.clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) \
             if opts.clock else None
         self.clock_period = 1.0 / opts.clock if opts.clock else None
+        self.answers = self.answer_key = None  # with --answer: start_answers
 
     def publish_clock(self, bag_ns: int) -> None:
         msg = self.Clock()
@@ -230,6 +249,8 @@ class Player:
             self.pubs[topic].publish(raw)
             self.counts[topic] += 1
             sent += 1
+            if self.answers is not None and topic == self.answer_key:
+                self.answers.wait(raw)
         return sent
 
     def flush(self, timeout: float = 3.0) -> None:
@@ -243,6 +264,17 @@ class Player:
         for p in [*self.pubs.values(), self.clock_pub]:
             if p is not None:
                 p.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
+
+    def start_answers(self, trigger: str, answer: str, timeout: float) -> None:
+        """Wait for answers on ``answer`` to the messages played on ``trigger`` (BagError)."""
+        from sphere_servo.bag.answers import Answers
+        keys = {topic_name(k): k for k in self.pubs}
+        if trigger not in keys:
+            raise BagError(f'--answer: {trigger} is not played; the topics played are '
+                           f'{", ".join(sorted(keys))}')
+        self.answer_key = keys[trigger]
+        self.answers = Answers(self.node, trigger, self.pubs[self.answer_key].msg_type,
+                               answer, timeout)
 
     def wait_for_subscribers(self, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -261,6 +293,7 @@ def main(args=None) -> int:
     opts = parse_args(ours)
     try:
         remaps = parse_remaps(opts.remap)
+        answer = None if opts.answer is None else parse_answer(opts.answer)
         reader = open_bag(opts.bag)
     except BagError as err:
         print(f'replay: error: {err}', file=sys.stderr)
@@ -294,6 +327,8 @@ def main(args=None) -> int:
                 not player.wait_for_subscribers(opts.wait_for_subscribers):
             print('replay: warning: not every topic has a subscriber; playing anyway',
                   file=sys.stderr, flush=True)
+        if answer is not None:
+            player.start_answers(*answer, opts.answer_timeout)
         if opts.delay > 0:
             time.sleep(opts.delay)
         print(f'replay: playing {opts.bag}: {sel.count} messages on {len(sel.connections)} '
@@ -304,6 +339,11 @@ def main(args=None) -> int:
             if not opts.loop or not rclpy.ok() or sent == 0:
                 break
         player.flush()
+        if player.answers is not None and player.answers.unanswered:
+            a = player.answers
+            print(f'replay: error: {a.unanswered} of {a.asked} messages of {a.trigger} had no '
+                  f'answer on {a.answer} within {a.timeout:g} s', file=sys.stderr)
+            code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except BagError as err:
