@@ -63,3 +63,44 @@ def test_matching_the_centroid_recovers_the_cap_centre(beta):
     got = match_centroid(sphere, start / np.linalg.norm(start), rho,
                          rendered_centroid(cO, r, m, rho))
     assert math.degrees(math.acos(min(1.0, float(got @ m)))) < 0.2
+
+
+def test_outside_share_bound_gives_the_exact_decision(monkeypatch):
+    """
+    ``at_most``: the cheap bound never hides a share above it, and it bounds the share.
+
+    Every call the detector makes on the corpus frames (both renderers, camera models,
+    the CC target, cables and fringes of the adversarial renders' kind absent or present),
+    and the same marks with their coverage spread by a stripe of pixels beside the cap.
+    """
+    from detector_corpus import cases
+    import sphere_servo.vision.caps as caps
+    import sphere_servo.vision.marks as marks
+    calls = []
+
+    def spy(*args, **kw):
+        calls.append(args)
+        return caps.outside_share(*args, **kw)
+    monkeypatch.setattr(marks, 'outside_share', spy)
+    for k, (_, make, img, enc, cam) in enumerate(cases()):
+        if k % 2 == 0:
+            make().detect(img, enc, cam)
+    assert len(calls) > 50
+    above = 0
+    for sphere, ray, rho, q, cov, w_sr, tol in calls:
+        # the mark as measured, then with a third of its pixels pushed 5–25 px off the cap
+        side = np.cross(ray, [0.0, 0.0, 1.0])
+        side /= np.linalg.norm(side)
+        variants = [q]
+        for step in (0.01, 0.04):
+            shifted = q.copy()
+            shifted[:, ::3] += step * side[:, None]
+            variants.append(shifted / np.linalg.norm(shifted, axis=0))
+        for qq in variants:
+            exact = caps.outside_share(sphere, ray, rho, qq, cov, w_sr, tol)
+            for limit in (0.1, 0.3):
+                fast = caps.outside_share(sphere, ray, rho, qq, cov, w_sr, tol, at_most=limit)
+                assert (fast > limit) == (exact > limit)
+                assert fast >= exact - 1e-12
+                above += exact > limit
+    assert above > 10      # the shifted marks do cross the limits

@@ -177,7 +177,8 @@ _CIRCLE = np.vstack([np.cos(_PSI), np.sin(_PSI), np.ones_like(_PSI)])
 
 
 def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.ndarray,
-                  cov: np.ndarray, w_sr: np.ndarray, tol_px: float) -> float:
+                  cov: np.ndarray, w_sr: np.ndarray, tol_px: float,
+                  at_most: float | None = None) -> float:
     """
     Share of a mark's coverage lying more than ``tol_px`` outside the image of its cap.
 
@@ -188,6 +189,12 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     ``b`` scaled to pixels (by ``1/√w_sr``: any central camera), is compared with the
     pixels at least half covered. A cable of the mark's colour across the cap, or a colour
     fringe along the limb, taken for a cap spreads beyond the cap its centre predicts.
+
+    ``at_most``: the caller only asks whether the share exceeds it. A pixel whose ray meets
+    the sphere inside the cap lies inside the visible cap's image, which the hull is
+    inscribed in (96 points: within 0.06 % of the cap's image radius, far below
+    ``tol_px``), so the share of the others bounds it; when that bound is at most
+    ``at_most`` it is returned without the hull (the usual mark: the bound is 0).
     """
     s, b, rd = sphere.s_nt, sphere.b, sphere.r_delta
     sr = float(s @ ray)
@@ -204,6 +211,18 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     conf = cov >= 0.5
     if n.shape[1] < 3 or not conf.any():
         return 1.0 if conf.any() else 0.0
+    c = cov[conf]
+    if at_most is not None:
+        qc = q[:, conf]
+        sq = s @ qc
+        disc = sq * sq
+        disc += 1.0 - float(s @ s)
+        t = sq - np.sqrt(np.maximum(disc, 0.0))       # the near hit ρ (units of r)
+        cos_m = t * (m @ qc)
+        cos_m -= float(s @ m)                          # n·m, n = ρq − s
+        out = c[(disc < 0.0) | (cos_m < cos_rho)].sum() / c.sum()
+        if out <= at_most:
+            return float(out)
     w = np.sort(w_sr[conf])
     scale = 1.0 / math.sqrt(0.5 * float(w[(len(w) - 1) // 2] + w[len(w) // 2]))   # median
     G = F @ (n + s[:, None])
@@ -218,5 +237,4 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     if float(nrm[0] @ H.mean(axis=0)) > off[0]:
         nrm, off = -nrm, -off                           # outward normals
     d = (nrm @ g - off[:, None]).max(axis=0)
-    c = cov[conf]
     return float(c[d > tol_px].sum() / c.sum())

@@ -374,7 +374,7 @@ class MarkFinder:
                                   'its centre on the sphere faces away', area)
                     continue
                 out = outside_share(sphere, ray, self.mark_radius, q, alpha / w_sr, w_sr,
-                                    self.spread_px)
+                                    self.spread_px, at_most=self.max_spread)
                 if out > self.max_spread:       # not the cap that its centre predicts
                     marks[name] = Mark.lost(name, Reason.MARK_NOT_A_CAP,
                                             f'{100 * out:.0f} % of it outside', area)
