@@ -27,7 +27,8 @@ pipeline passes each image's header on), or ``--answer-timeout`` seconds (defaul
 passed. A node whose reader keeps only the newest frames (the detector: 5) then gets every
 frame however loaded the machine is, as in the lockstep run that recorded them; bag timing
 still applies (``--max-rate``: as fast as answered). Messages left unanswered are counted,
-and make the exit code 1. (:mod:`sphere_servo.bag.answers`)
+and make the exit code 1; three in a row, or the answer topic losing its publishers, stop
+the replay. Interrupted, it exits 1 unless ``--loop``. (:mod:`sphere_servo.bag.answers`)
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ import math
 import sys
 import time
 
-from sphere_servo.bag.answers import parse_answer
+from sphere_servo.bag.answers import parse_answer, stamped
 from sphere_servo.bag.bagio import (BagError, format_summary, iter_raw, open_bag, select,
                                     summary, topic_name)
 from sphere_servo.bag.metadata import INFINITE
@@ -59,12 +60,20 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument('--wait-for-subscribers', nargs='?', type=float, const=10.0, default=None,
                    metavar='S', help='wait (at most S s, default 10) until every publisher '
                    'has a subscriber')
-    p.add_argument('--answer', default=None, metavar='TOPIC:=ANSWER',
+    p.add_argument('--answer', action='append', metavar='TOPIC:=ANSWER',
                    help='after each message of TOPIC, wait for the message of ANSWER with '
                    'its header stamp')
-    p.add_argument('--answer-timeout', type=float, default=5.0, metavar='S',
+    p.add_argument('--answer-timeout', type=float, default=None, metavar='S',
                    help='longest wait for an answer (default 5 s)')
     opts = p.parse_args(argv)
+    if opts.answer is None and opts.answer_timeout is not None:
+        p.error('--answer-timeout without --answer: there is nothing to wait for')
+    if opts.answer_timeout is None:
+        opts.answer_timeout = 5.0
+    # one trigger: a second --answer would otherwise silently replace the first
+    if opts.answer is not None and len(opts.answer) > 1:
+        p.error(f'--answer given {len(opts.answer)} times; one TOPIC:=ANSWER is played')
+    opts.answer = opts.answer and opts.answer[0]
     if not 0 < opts.answer_timeout < math.inf:
         p.error('--answer-timeout must be a finite number of seconds > 0, got '
                 f'{opts.answer_timeout}')
@@ -193,6 +202,7 @@ class Player:
 
         from sphere_servo.bag.record import import_message
         self.node, self.reader, self.conns, self.opts = node, reader, conns, opts
+        self.remaps = remaps
         self.pubs = {}
         self.counts: dict[str, int] = {}
         for c in conns:
@@ -246,11 +256,14 @@ class Player:
             if self.clock_pub is not None:
                 self.publish_clock(ts)
             topic = self.topic_of[conn.id]
+            trigger = self.answers is not None and topic == self.answer_key
+            if trigger:
+                self.answers.ask(raw)
             self.pubs[topic].publish(raw)
             self.counts[topic] += 1
             sent += 1
-            if self.answers is not None and topic == self.answer_key:
-                self.answers.wait(raw)
+            if trigger:
+                self.answers.wait()
         return sent
 
     def flush(self, timeout: float = 3.0) -> None:
@@ -265,16 +278,27 @@ class Player:
             if p is not None:
                 p.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
 
+    def check_answers(self, trigger: str, answer: str) -> str:
+        """Return the publisher key of ``trigger``; BagError if --answer cannot work."""
+        keys = {topic_name(k): k for k in self.pubs}
+        if trigger not in keys:
+            moved = self.remaps.get(trigger)
+            raise BagError(f'--answer: {trigger} is not played'
+                           + (f' (--remap publishes it on {moved})' if moved else '')
+                           + f'; the topics played are {", ".join(sorted(keys))}')
+        if answer in keys:
+            # its recorded messages would pass for answers, and replay for its publisher
+            raise BagError(f'--answer: {answer} is played from the bag too; leave it out '
+                           '(--topics) or --remap it to answer on it')
+        if not stamped(self.pubs[keys[trigger]].msg_type):
+            raise BagError(f'--answer: {trigger} carries no header to match answers by')
+        return keys[trigger]
+
     def start_answers(self, trigger: str, answer: str, timeout: float) -> None:
         """Wait for answers on ``answer`` to the messages played on ``trigger`` (BagError)."""
         from sphere_servo.bag.answers import Answers
-        keys = {topic_name(k): k for k in self.pubs}
-        if trigger not in keys:
-            raise BagError(f'--answer: {trigger} is not played; the topics played are '
-                           f'{", ".join(sorted(keys))}')
-        self.answer_key = keys[trigger]
-        self.answers = Answers(self.node, trigger, self.pubs[self.answer_key].msg_type,
-                               answer, timeout)
+        self.answer_key = self.check_answers(trigger, answer)
+        self.answers = Answers(self.node, trigger, answer, timeout)
 
     def wait_for_subscribers(self, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -283,6 +307,24 @@ class Player:
                 return True
             time.sleep(0.05)
         return False
+
+
+def report_answers(answers, loop: bool, interrupted: bool) -> int:
+    """Say how the answers went; return the exit code they call for."""
+    a = answers
+    if interrupted:
+        pending = '' if a.waiting is None else \
+            f' while waiting for the answer to the message stamped {a.waiting}'
+        print(f'replay: interrupted{pending}: {a.asked - a.unanswered} of {a.asked} messages '
+              f'of {a.trigger} before it answered', file=sys.stderr)
+    err = a.report()
+    if not err and not interrupted and not a.asked:
+        err = f'no message of {a.trigger} was played: nothing was waited for'
+    if err:
+        print(f'replay: error: {err}', file=sys.stderr)
+        return 1
+    # cut short, the bag was not played answered; with --loop a signal is the way to end
+    return 1 if interrupted and not loop else 0
 
 
 def main(args=None) -> int:
@@ -319,10 +361,13 @@ def main(args=None) -> int:
     node = None
     player = None
     code = 0
+    interrupted = False
     started = time.monotonic()
     try:
         node = rclpy.create_node('replay')
         player = Player(node, reader, sel.connections, opts, remaps)
+        if answer is not None:   # before waiting for subscribers: a wrong --answer fails fast
+            player.check_answers(*answer)
         if opts.wait_for_subscribers is not None and \
                 not player.wait_for_subscribers(opts.wait_for_subscribers):
             print('replay: warning: not every topic has a subscriber; playing anyway',
@@ -338,14 +383,10 @@ def main(args=None) -> int:
             sent = player.play_once()
             if not opts.loop or not rclpy.ok() or sent == 0:
                 break
+        interrupted = not rclpy.ok()   # SIGTERM shut the context down
         player.flush()
-        if player.answers is not None and player.answers.unanswered:
-            a = player.answers
-            print(f'replay: error: {a.unanswered} of {a.asked} messages of {a.trigger} had no '
-                  f'answer on {a.answer} within {a.timeout:g} s', file=sys.stderr)
-            code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        interrupted = True
     except BagError as err:
         print(f'replay: error: {err}', file=sys.stderr)
         code = 1
@@ -354,11 +395,15 @@ def main(args=None) -> int:
             print(f'replay: error: {type(err).__name__}: {" ".join(str(err).split())}',
                   file=sys.stderr)
             code = 1
+        else:
+            interrupted = True
     finally:
         reader.close()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if player is not None and player.answers is not None:
+        code = max(code, report_answers(player.answers, opts.loop, interrupted))
     if player is not None:
         elapsed = time.monotonic() - started
         total = sum(player.counts.values())
