@@ -144,8 +144,9 @@ def test_answers_published_before_the_trigger_are_no_answers(launch, test_node, 
                 prophet.publish(JointState(header=_header_msg(s)))
             told.append(1)
         return False
+    # --delay: the prophecies land before the first image, however loaded the machine
     rep, _ = _play(launch, spin, _bag(tmp_path / 'b', stamps), '--answer',
-                   '/cam/image:=/answer', until=tell)
+                   '/cam/image:=/answer', '--delay', '2', until=tell)
     assert told and rep.popen.wait(10) == 0, rep.log()
     assert seen == stamps, _clean(rep)
 
