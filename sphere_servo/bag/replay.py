@@ -216,7 +216,7 @@ class Player:
         self.clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) \
             if opts.clock else None
         self.clock_period = 1.0 / opts.clock if opts.clock else None
-        self.answers = self.answer_key = None  # with --answer: start_answers
+        self.answers = self.answer_key = None  # with --answer: check_, start_answers
 
     def publish_clock(self, bag_ns: int) -> None:
         msg = self.Clock()
@@ -278,8 +278,8 @@ class Player:
             if p is not None:
                 p.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
 
-    def check_answers(self, trigger: str, answer: str) -> str:
-        """Return the publisher key of ``trigger``; BagError if --answer cannot work."""
+    def check_answers(self, trigger: str, answer: str) -> None:
+        """Note the publisher key of ``trigger``; BagError if --answer cannot work."""
         keys = {topic_name(k): k for k in self.pubs}
         if trigger not in keys:
             moved = self.remaps.get(trigger)
@@ -292,12 +292,11 @@ class Player:
                            '(--topics) or --remap it to answer on it')
         if not stamped(self.pubs[keys[trigger]].msg_type):
             raise BagError(f'--answer: {trigger} carries no header to match answers by')
-        return keys[trigger]
+        self.answer_key = keys[trigger]
 
     def start_answers(self, trigger: str, answer: str, timeout: float) -> None:
-        """Wait for answers on ``answer`` to the messages played on ``trigger`` (BagError)."""
+        """Wait for answers on ``answer`` to ``trigger`` (checked by :meth:`check_answers`)."""
         from sphere_servo.bag.answers import Answers
-        self.answer_key = self.check_answers(trigger, answer)
         self.answers = Answers(self.node, trigger, answer, timeout)
 
     def wait_for_subscribers(self, timeout: float) -> bool:

@@ -211,9 +211,8 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     conf = cov >= 0.5
     if n.shape[1] < 3 or not conf.any():
         return 1.0 if conf.any() else 0.0
-    c = cov[conf]
+    c, qc = cov[conf], q[:, conf]
     if at_most is not None:
-        qc = q[:, conf]
         sq = s @ qc
         disc = sq * sq
         disc += 1.0 - float(s @ s)
@@ -227,7 +226,7 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     scale = 1.0 / math.sqrt(0.5 * float(w[(len(w) - 1) // 2] + w[len(w) // 2]))   # median
     G = F @ (n + s[:, None])
     H = cv2.convexHull((G[:2] / G[2] * scale).T.astype(np.float32))[:, 0].astype(float)
-    g = F @ q[:, conf]
+    g = F @ qc
     g = g[:2] / g[2] * scale
     # the distance outside a convex polygon is at least the largest over its edges' lines
     e = np.vstack((H[1:], H[:1])) - H
