@@ -137,6 +137,21 @@ def test_detector_refuses(kind, detector):
     assert 'b_x' in meas.name
 
 
+@pytest.mark.parametrize('encoding', ['rgba8', 'bgra8'])
+def test_detector_reads_images_with_alpha(encoding, detector):
+    d = detector
+    want, _ = d.until(d.info(), _found)     # the rgb8 frame
+    colour = d.rgb if encoding == 'rgba8' else d.rgb[..., ::-1]
+    h, w = colour.shape[:2]
+    rows = np.zeros((h, w * 4 + 16), np.uint8)  # padded rows, a translucent alpha
+    rows[:, :w * 4] = np.dstack([colour, np.full((h, w), 128, np.uint8)]).reshape(h, -1)
+    meas, st = d.answer(d.image(encoding=encoding, step=w * 4 + 16, data=rows.tobytes()))
+    assert st.message == 'found', values(st)
+    assert list(meas.name) == list(want.name) and 'P2_qx' in meas.name
+    assert np.array_equal(meas.position, want.position)
+    assert alive(d.proc)
+
+
 def test_detector_survives_a_flood(detector):
     """300 images as fast as they go, none usable (4×4): alive, empty answers, finite."""
     d = detector

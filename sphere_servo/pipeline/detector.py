@@ -36,9 +36,12 @@ from sphere_servo.pipeline.common import Level, NodeStatus, Refusal
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.pipeline.vectors import Measurement
 from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
+from sphere_servo.vision.image import ALPHA_ENCODINGS, ENCODINGS, without_alpha
 
 
 NO_CAMERA = 'no valid camera_info received yet'
+#: the image encodings the detector node takes
+INPUTS = ENCODINGS + tuple(ALPHA_ENCODINGS)
 #: the camera models whose distortion the detector applies: it lifts the silhouette's edge
 #: and the marks through the model onto the unit sphere. A model not in it is refused,
 #: never silently measured as a distortion-free pinhole.
@@ -113,15 +116,18 @@ class DetectorOutput:
     """
     The detector's answer to one image.
 
-    image      the decoded image (H, W, 3) or (H, W) in its encoding; None when rejected.
+    image      the decoded image (H, W, 3) or (H, W) in ``encoding``; None when rejected.
     detection  None when rejected.
     reason     why not found or rejected ('' when found).
+    encoding   ``image``'s: the message's, ``rgb8``/``bgr8`` for ``rgba8``/``bgra8`` (alpha
+               dropped); '' when rejected.
     """
 
     status: DetectStatus
     image: Image | None = None
     detection: Detection | None = None
     reason: str = ''
+    encoding: str = ''
 
     @property
     def measurement(self) -> Measurement:
@@ -186,7 +192,9 @@ class DetectorCore:
         cannot use it for this image (:func:`detector_camera`).
         """
         try:
-            img = image_from_buffer(height, width, step, encoding, data)
+            img, encoding = without_alpha(
+                image_from_buffer(height, width, step, encoding, data, encodings=INPUTS),
+                encoding)
             if camera is None:
                 raise ValueError(NO_CAMERA)
             det = self.detector.detect(img, encoding,
@@ -194,4 +202,4 @@ class DetectorCore:
         except ValueError as exc:
             return DetectorOutput(DetectStatus.REJECTED, reason=str(exc))
         return DetectorOutput(DetectStatus.FOUND if det.found else DetectStatus.NOT_FOUND,
-                              img, det, det.reason)
+                              img, det, det.reason, encoding)

@@ -2,7 +2,7 @@
 ``detector``: camera image → the sphere's ellipse and the marks' image points.
 
 Subscribes
-    ``camera/image_raw``    sensor_msgs/Image       rgb8, bgr8 or mono8
+    ``camera/image_raw``    sensor_msgs/Image       rgb8, bgr8, mono8, rgba8 or bgra8
     ``camera/camera_info``  sensor_msgs/CameraInfo  intrinsics (k); the latest one is used
 Publishes (header = the image's header, so stamps flow through the pipeline)
     ``detector/measurement``  sensor_msgs/JointState  named values, see
@@ -78,8 +78,8 @@ class DetectorNode(Node):
         self.pub.publish(measurement_msg(out.measurement, msg.header))
         if self.core.params.publish_overlay and out.detection is not None:
             img = out.image
-            rgb = img if msg.encoding == 'rgb8' else (
-                img[..., ::-1] if msg.encoding == 'bgr8' else np.dstack([img] * 3))
+            rgb = img if out.encoding == 'rgb8' else (
+                img[..., ::-1] if out.encoding == 'bgr8' else np.dstack([img] * 3))
             self.pub_overlay.publish(image_from_array(draw_detection(rgb, out.detection),
                                                       msg.header))
         self.status.update(self.core.status(), msg.header)

