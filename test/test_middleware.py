@@ -89,6 +89,7 @@ def test_participants_announce_every_second_well_within_their_lease():
     lease = 20.0 if lease is None else _seconds(lease)  # Fast DDS's default
     assert 0 < announcement <= 1.0
     assert lease >= 10 * announcement  # a few lost announcements drop no participant
+    assert lease <= 10.0  # a killed process's publishers are forgotten within 10 s
 
 
 def test_profile_env_names_the_profile_under_both_variables(tmp_path):

@@ -292,6 +292,10 @@ class Player:
                            '(--topics) or --remap it to answer on it')
         if not stamped(self.pubs[keys[trigger]].msg_type):
             raise BagError(f'--answer: {trigger} carries no header to match answers by')
+        if not sum(c.msgcount for c in self.conns if self.topic_of[c.id] == keys[trigger]):
+            # before the wait for subscribers: the other topics' may never come
+            raise BagError(f'--answer: the bag holds no message of {trigger}: nothing would '
+                           'be waited for')
         self.answer_key = keys[trigger]
 
     def start_answers(self, trigger: str, answer: str, timeout: float) -> None:

@@ -67,7 +67,8 @@ STARTUP_TIMEOUT = 60.0       # wall s the nodes have to start (the servo's first
 DISCOVERY_WAIT = 1.0         # wall s to hear the nodes already on the domain, before a start
 LIVE_WAIT = 2.5              # wall s to hear one of them on /diagnostics (1 Hz): it runs
 STALE_WAIT = 25.0            # wall s for such nodes to go: Fast DDS drops a killed process's
-#                              participant after its lease (20 s)
+#                              participant after its lease (10 s with config/fastdds.xml, 20 s
+#                              with Fast DDS's defaults: a node a user started without it)
 #: what each node builds at start from its parameters: its core refuses what it cannot use
 NODE_CORES = {'arm_sim': ArmSimCore, 'detector': DetectorCore, 'features': FeaturesCore,
               'servo': ServoCore}

@@ -34,8 +34,8 @@ desired dropped when its publisher is gone) is
 :class:`~sphere_servo.pipeline.servo.ServoCore`'s; on shutdown the last word is a zero
 twist. ``feature_set`` ∈ {s_n, s}: their interaction matrices depend on s only (eqs. 6 and
 16). The desired topic's publishers are looked up every ``DESIRED_CHECK`` s: a features
-node that stopped is seen at once, one killed with SIGKILL after the middleware's liveliness
-lease (Fast DDS: 20 s).
+node that stopped is seen at once, one killed with SIGKILL after its participant's lease
+(``config/fastdds.xml``: 10 s; Fast DDS's default: 20 s).
 """
 from __future__ import annotations
 
