@@ -79,7 +79,8 @@ def _stamp(msg) -> int:
     return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
 
 
-def _answerer(node, copies=1, shift=0, delay=0.03, best_effort=False, topic='/cam/image'):
+def _answerer(node, copies=1, shift=0, delay=0.03, best_effort=False, topic='/cam/image',
+              answer='/answer'):
     """
     Keep the newest image only, take ``delay`` s on it, answer it on ``copies`` publishers.
 
@@ -88,7 +89,7 @@ def _answerer(node, copies=1, shift=0, delay=0.03, best_effort=False, topic='/ca
     seen = []
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT if best_effort
                      else ReliabilityPolicy.RELIABLE)
-    pubs = [node.create_publisher(JointState, '/answer', qos) for _ in range(copies)]
+    pubs = [node.create_publisher(JointState, answer, qos) for _ in range(copies)]
 
     def on_image(msg):
         time.sleep(delay)
@@ -341,6 +342,30 @@ def test_odd_bags_and_options_are_answered_or_refused(launch, test_node, tmp_pat
     elif case != 'xcdr2':   # whether the node reads XCDR2 is the middleware's business
         assert code == 0, log
     assert clock == sorted(clock), 'the clock went back'
+
+
+@pytest.mark.parametrize('trigger, answer, rules', [
+    ('/cam/image', '/answer2', ['-r', '/cam/image:=/cam2']),        # the bag's name
+    ('/cam2', '/answer', ['-r', '/cam/image:=/cam2', '-r', '/answer:=/answer2']),
+])
+def test_ros_args_remaps_are_followed(launch, test_node, tmp_path, trigger, answer, rules):
+    """``--ros-args -r`` renames the image and the answer: --answer names them either way."""
+    node, spin = test_node
+    seen = _answerer(node, topic='/cam2', answer='/answer2')
+    stamps = [T0 + i * STEP for i in range(12)]
+    rep, _ = _play(launch, spin, _bag(tmp_path / 'b', stamps), '--answer',
+                   f'{trigger}:={answer}', '--ros-args', *rules, '--')
+    assert rep.popen.wait(10) == 0, rep.log()
+    assert seen == stamps, _clean(rep)
+
+
+def test_a_remap_onto_a_played_topic_is_refused(launch, test_node, tmp_path):
+    """An answer that rcl's rules put on a topic replay plays would answer itself."""
+    node, spin = test_node
+    _answerer(node)
+    rep, _ = _play(launch, spin, _bag(tmp_path / 'b', [T0], other='/other'), '--answer',
+                   '/cam/image:=/answer', '--ros-args', '-r', '/answer:=/other', '--')
+    assert rep.popen.wait(10) == 1 and 'played from the bag too' in _clean(rep), rep.log()
 
 
 def test_answer_type_without_header_or_trigger_never_played(launch, test_node, tmp_path):

@@ -80,25 +80,28 @@ class Answers:
                                ReliabilityPolicy)
 
         from sphere_servo.bag.record import import_message
-        self.node, self.trigger, self.answer, self.timeout = node, trigger, answer, timeout
+        self.node, self.trigger, self.timeout = node, trigger, timeout
+        # the topic the subscription is on: --ros-args -r rules rename it as they do any
+        where = node.resolve_topic_name(answer)
+        self.answer = answer if where == answer else f'{answer} (remapped to {where})'
         deadline = time.monotonic() + timeout
         types = []
         while not types and time.monotonic() < deadline:
-            types = dict(node.get_topic_names_and_types()).get(answer, [])
+            types = dict(node.get_topic_names_and_types()).get(where, [])
             if not types:
                 time.sleep(0.05)
         if not types:
-            raise BagError(f'--answer: nothing publishes {answer} (waited {timeout:g} s)')
+            raise BagError(f'--answer: nothing publishes {self.answer} (waited {timeout:g} s)')
         if len(types) > 1:
             # a subscription has one type: the other type's answers would never arrive
-            raise BagError(f'--answer: {answer} is published with several types: '
+            raise BagError(f'--answer: {self.answer} is published with several types: '
                            f'{", ".join(types)}')
         cls = import_message(types[0])
         if not stamped(cls):
-            raise BagError(f'--answer: {answer} [{types[0]}] carries no header')
+            raise BagError(f'--answer: {self.answer} [{types[0]}] carries no header')
         # best effort matches every writer; reliable only reliable ones
         best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
-                          for i in node.get_publishers_info_by_topic(answer))
+                          for i in node.get_publishers_info_by_topic(where))
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          durability=DurabilityPolicy.VOLATILE,
                          reliability=ReliabilityPolicy.BEST_EFFORT if best_effort

@@ -21,7 +21,8 @@ Before playing, replay says what it will play; a selection that plays nothing is
 ``/clock`` from bag time (at HZ, default 40, and before each message), so nodes with
 ``use_sim_time`` follow the bag.
 
-``--answer TOPIC:=ANSWER`` plays each message of TOPIC (as published, after ``--remap``) only
+``--answer TOPIC:=ANSWER`` plays each message of TOPIC (after ``--remap``; or as a
+``--ros-args -r`` rule renames it, which renames ANSWER too) only
 once the previous one was answered: a message on ANSWER with the same header stamp (the
 pipeline passes each image's header on), or ``--answer-timeout`` seconds (default 5)
 passed. A node whose reader keeps only the newest frames (the detector: 5) then gets every
@@ -279,14 +280,22 @@ class Player:
                 p.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
 
     def check_answers(self, trigger: str, answer: str) -> None:
-        """Note the publisher key of ``trigger``; BagError if --answer cannot work."""
+        """
+        Note the publisher key of ``trigger``; BagError if --answer cannot work.
+
+        ``trigger`` is a topic as played (after ``--remap``) or as ``--ros-args -r`` rules
+        rename it; ``answer`` is compared as those rules rename it.
+        """
         keys = {topic_name(k): k for k in self.pubs}
+        # where each publisher and the answer's subscription really are (rcl's remap rules)
+        resolved = {self.node.resolve_topic_name(k): k for k in self.pubs}
+        keys.update({r: k for r, k in resolved.items() if r not in keys})
         if trigger not in keys:
             moved = self.remaps.get(trigger)
             raise BagError(f'--answer: {trigger} is not played'
                            + (f' (--remap publishes it on {moved})' if moved else '')
                            + f'; the topics played are {", ".join(sorted(keys))}')
-        if answer in keys:
+        if answer in keys or self.node.resolve_topic_name(answer) in resolved:
             # its recorded messages would pass for answers, and replay for its publisher
             raise BagError(f'--answer: {answer} is played from the bag too; leave it out '
                            '(--topics) or --remap it to answer on it')
