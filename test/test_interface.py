@@ -184,7 +184,8 @@ def test_the_launch_file_is_installed_with_the_files_it_names(ros_env):
     Check the installed launch file without ``launch`` (not on PyPI here).
 
     It compiles, and the scenarios it reads (its default among them), with the launcher's
-    reader in the install space, name installed params files and installed executables.
+    reader in the install space, name installed params files and installed executables; its
+    nodes are given the shipped Fast DDS profile.
     """
     root = share(ros_env)
     path = root / 'launch' / 'sphere_servo.launch.py'
@@ -211,3 +212,8 @@ def test_the_launch_file_is_installed_with_the_files_it_names(ros_env):
         assert nodes == list(NODES) and all((lib / n).is_file() for n in nodes)
         assert files and all(f.parent == root / 'config' / 'params' and f.is_file()
                              for f in files), line
+    # its nodes get the shipped profile as the launcher's do (middleware_additions)
+    nodes = [n for n in ast.walk(tree) if isinstance(n, ast.Call)
+             and getattr(n.func, 'id', '') == 'Node']
+    assert nodes and all(any(k.arg == 'additional_env' for k in n.keywords) for n in nodes)
+    assert 'middleware_additions(os.environ)' in ast.unparse(tree)

@@ -28,8 +28,9 @@ import pytest
 
 from sphere_servo.bringup.processes import interrupt, Launcher
 from sphere_servo.pipeline.config import package_prefix, scenario
-from sphere_servo.pipeline.middleware import (middleware_env, profile_env, profile_path,
-                                              PROFILE_VARIABLES, RMW)
+from sphere_servo.pipeline.middleware import (middleware_additions, middleware_env,
+                                              profile_env, profile_path, PROFILE_VARIABLES,
+                                              RMW)
 
 NS = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
 HD_BYTES = 1280 * 720 * 3
@@ -125,6 +126,19 @@ def test_middleware_env_adds_the_profile_and_keeps_what_the_user_chose(tmp_path)
     assert middleware_env(cyclone) == cyclone
     with pytest.raises(FileNotFoundError):
         middleware_env({'FASTRTPS_DEFAULT_PROFILES_FILE': str(tmp_path / 'typo.xml')})
+
+
+def test_middleware_additions_are_what_a_node_lacks(tmp_path):
+    base = {'PATH': '/usr/bin', 'ROS_DOMAIN_ID': '7'}
+    added = middleware_additions(base)
+    assert set(added) == {'RMW_IMPLEMENTATION', *PROFILE_VARIABLES}
+    assert {**base, **added} == middleware_env(base)
+    mine = (tmp_path / 'mine.xml').resolve()
+    mine.write_text('<profiles/>')
+    added = middleware_additions({'FASTDDS_DEFAULT_PROFILES_FILE': str(mine),
+                                  'RMW_IMPLEMENTATION': RMW})
+    assert added == {'FASTRTPS_DEFAULT_PROFILES_FILE': str(mine)}  # the user's, both names
+    assert middleware_additions({'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}) == {}
 
 
 SEGMENT = re.compile(r'/dev/shm/fastrtps_[0-9a-f]{16}$')

@@ -13,7 +13,8 @@ be in the environment of every node process before ``rclpy.init``:
 :func:`profile_path` finds the profile as :func:`~sphere_servo.pipeline.config.find_config`
 finds a config: in the install space (``share/sphere_servo/config``) if the package is
 installed, else in the source tree. :func:`middleware_env` adds the variables to an
-environment, keeping what the user chose there. :func:`environment_problem` says what in an
+environment, keeping what the user chose there (:func:`middleware_additions`: only what it
+adds). :func:`environment_problem` says what in an
 environment no node can work with (the launcher and every node refuse to start on it).
 """
 from __future__ import annotations
@@ -107,3 +108,13 @@ def middleware_env(base: Mapping[str, str], profile: Path | None = None) -> dict
     chosen = profile if profile is not None else (Path(user) if user else None)
     env.update(profile_env(chosen))
     return env
+
+
+def middleware_additions(base: Mapping[str, str]) -> dict[str, str]:
+    """
+    Return only what :func:`middleware_env` adds to ``base`` or changes in it.
+
+    For a launcher that passes a node the variables to add to its own environment (``ros2
+    launch``: ``Node(additional_env=...)``); empty when the user chose another rmw.
+    """
+    return {k: v for k, v in middleware_env(base).items() if base.get(k) != v}
