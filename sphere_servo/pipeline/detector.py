@@ -35,6 +35,7 @@ from sphere_servo.core.types import Image
 from sphere_servo.pipeline.common import Level, NodeStatus, Refusal
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.pipeline.vectors import Measurement
+from sphere_servo.vision.compressed import decode_compressed
 from sphere_servo.vision.detector import Detection, Detector, image_from_buffer
 from sphere_servo.vision.image import ALPHA_ENCODINGS, ENCODINGS, without_alpha
 
@@ -179,7 +180,14 @@ class DetectorCore:
     def on_image(self, height: int, width: int, step: int, encoding: str,
                  data) -> DetectorOutput:
         """Detect in one image buffer (``sensor_msgs/Image`` fields) with the latest camera."""
-        self.last = out = self.detect(height, width, step, encoding, data, self.camera)
+        return self._counted(self.detect(height, width, step, encoding, data, self.camera))
+
+    def on_compressed(self, fmt: str, data) -> DetectorOutput:
+        """Detect in one ``sensor_msgs/CompressedImage`` (format, data) with the latest camera."""
+        return self._counted(self.detect_compressed(fmt, data, self.camera))
+
+    def _counted(self, out: DetectorOutput) -> DetectorOutput:
+        self.last = out
         self.counts[out.status] += 1
         return out
 
@@ -188,13 +196,31 @@ class DetectorCore:
         """
         Detect in one image buffer with ``camera``.
 
-        Rejected when ``camera`` is None (no usable camera_info yet), and when the detector
-        cannot use it for this image (:func:`detector_camera`).
+        Rejected when the buffer cannot be read, when ``camera`` is None (no usable
+        camera_info yet), and when the detector cannot use it for this image
+        (:func:`detector_camera`).
         """
         try:
             img, encoding = without_alpha(
                 image_from_buffer(height, width, step, encoding, data, encodings=INPUTS),
                 encoding)
+        except ValueError as exc:
+            return DetectorOutput(DetectStatus.REJECTED, reason=str(exc))
+        return self.detect_image(img, encoding, camera)
+
+    def detect_compressed(self, fmt: str, data,
+                          camera: CentralCamera | None) -> DetectorOutput:
+        """Detect in one compressed image (:mod:`~sphere_servo.vision.compressed`)."""
+        try:
+            img, encoding = decode_compressed(fmt, data)
+        except ValueError as exc:
+            return DetectorOutput(DetectStatus.REJECTED, reason=str(exc))
+        return self.detect_image(img, encoding, camera)
+
+    def detect_image(self, img: Image, encoding: str,
+                     camera: CentralCamera | None) -> DetectorOutput:
+        """Detect in a decoded ``rgb8``/``bgr8``/``mono8`` image with ``camera``."""
+        try:
             if camera is None:
                 raise ValueError(NO_CAMERA)
             det = self.detector.detect(img, encoding,

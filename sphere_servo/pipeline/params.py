@@ -349,6 +349,10 @@ class DetectorParams(NodeParams):
         [0.0, 0.0, 0.0, 0.0], 'relative errors (px, py, u0, v0) applied to camera_info '
         '(calibration-error experiment)', size=4, bounds=INTRINSICS_ERROR_BOUNDS, **FIXED)
     publish_overlay: bool = param(False, 'publish detector/overlay (costs a copy and a draw)')
+    image_transport: str = param('raw', "'raw': sensor_msgs/Image on camera/image_raw; "
+                                 "'compressed': sensor_msgs/CompressedImage (JPEG, PNG) on "
+                                 'camera/image_raw/compressed, as image_transport names it',
+                                 choices=('raw', 'compressed'), **FIXED)
 
     def validate(self) -> None:
         """Check ``intrinsics_error`` (:func:`check_intrinsics_error`)."""

@@ -3,6 +3,8 @@
 
 Subscribes
     ``camera/image_raw``    sensor_msgs/Image       rgb8, bgr8, mono8, rgba8 or bgra8
+                            (``image_transport: compressed``: ``camera/image_raw/compressed``,
+                            sensor_msgs/CompressedImage, JPEG or PNG)
     ``camera/camera_info``  sensor_msgs/CameraInfo  intrinsics (k); the latest one is used
 Publishes (header = the image's header, so stamps flow through the pipeline)
     ``detector/measurement``  sensor_msgs/JointState  named values, see
@@ -28,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from sphere_servo.pipeline.common import Refusal
 from sphere_servo.pipeline.detector import DetectorCore, DetectStatus
 from sphere_servo.pipeline.params import DetectorParams
@@ -58,7 +60,11 @@ class DetectorNode(Node):
                                                  writer('detector/overlay'))
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, SENSOR)
-        self.create_subscription(Image, 'camera/image_raw', self._on_image, SENSOR)
+        if self.core.params.image_transport == 'compressed':
+            self.create_subscription(CompressedImage, 'camera/image_raw/compressed',
+                                     self._on_compressed, SENSOR)
+        else:
+            self.create_subscription(Image, 'camera/image_raw', self._on_image, SENSOR)
         self.log = ThrottledLog(self.get_logger())
 
     @guarded
@@ -70,23 +76,31 @@ class DetectorNode(Node):
 
     @guarded
     def _on_image(self, msg: Image) -> None:
-        out = self.core.on_image(msg.height, msg.width, msg.step, msg.encoding, msg.data)
+        self._answer(self.core.on_image(msg.height, msg.width, msg.step, msg.encoding,
+                                        msg.data), msg.header)
+
+    @guarded
+    def _on_compressed(self, msg: CompressedImage) -> None:
+        self._answer(self.core.on_compressed(msg.format, msg.data), msg.header)
+
+    def _answer(self, out, header) -> None:
+        """Publish the measurement of one image (empty unless found), its overlay, status."""
         if out.status is DetectStatus.REJECTED:
             self.log.error(f'image rejected: {out.reason}')
         elif out.status is DetectStatus.NOT_FOUND:
             self.log.warn(f'sphere not detected: {out.reason}')
-        self.pub.publish(measurement_msg(out.measurement, msg.header))
+        self.pub.publish(measurement_msg(out.measurement, header))
         if self.core.params.publish_overlay and out.detection is not None:
             img = out.image
             rgb = img if out.encoding == 'rgb8' else (
                 img[..., ::-1] if out.encoding == 'bgr8' else np.dstack([img] * 3))
             self.pub_overlay.publish(image_from_array(draw_detection(rgb, out.detection),
-                                                      msg.header))
-        self.status.update(self.core.status(), msg.header)
+                                                      header))
+        self.status.update(self.core.status(), header)
 
     def go_safe(self, msg=None) -> None:
         """Publish an empty measurement (target lost) for the image whose callback failed."""
-        if isinstance(msg, Image):
+        if isinstance(msg, (Image, CompressedImage)):
             self.pub.publish(measurement_msg(None, msg.header))
 
 
