@@ -278,3 +278,42 @@ def test_the_features_desired_image_is_read_with_the_reduced_camera(tmp_path):
     assert c.has_desired and not isinstance(obs, Refusal)
     b = CMO_D.translation / np.linalg.norm(CMO_D.translation)
     assert math.degrees(math.acos(min(1.0, obs.sphere.b @ b))) < 0.1
+
+
+# --- the bag tools: rosbags' CameraInfo has the same fields ------------------------------------
+def _rosbags_info(ts, binning: int, roi: tuple):
+    CameraInfo = ts.types['sensor_msgs/msg/CameraInfo']
+    Roi = ts.types['sensor_msgs/msg/RegionOfInterest']
+    Header, Time = ts.types['std_msgs/msg/Header'], ts.types['builtin_interfaces/msg/Time']
+    return CameraInfo(header=Header(stamp=Time(sec=1, nanosec=0), frame_id='cam'),
+                      height=480, width=640, distortion_model='plumb_bob',
+                      d=np.asarray(INFO['d']), k=np.asarray(INFO['k']),
+                      r=np.asarray(INFO['r']), p=np.asarray(INFO['p']), binning_x=binning,
+                      binning_y=binning, roi=Roi(x_offset=roi[0], y_offset=roi[1],
+                                                 width=roi[2], height=roi[3],
+                                                 do_rectify=False))
+
+
+def test_the_bag_tools_read_binning_and_roi(tmp_path):
+    """Give refeatures and a recorded run the reduced camera, and refeatures its refusal."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from sphere_servo.bag.bagio import typestore
+    from sphere_servo.bag.offline import Pipeline, Settings
+    from sphere_servo.bag.run import read_run
+    ts = typestore()
+    info = _rosbags_info(ts, 2, (40, 20, 400, 300))
+    cam = Pipeline(Settings.from_params()).camera_or_refusal(info)
+    assert (cam.width, cam.height, cam.u0, cam.v0) == (200, 150, 140.0, 110.0)
+    bad = Pipeline(Settings.from_params()).camera_or_refusal(
+        _rosbags_info(ts, 2, (400, 20, 400, 300)))
+    assert isinstance(bad, Refusal) and '400 + 400 = 800' in bad.reason
+    Image = ts.types['sensor_msgs/msg/Image']
+    img = Image(header=info.header, height=150, width=200, encoding='rgb8', is_bigendian=0,
+                step=600, data=np.zeros(600 * 150, np.uint8))
+    with Writer(tmp_path / 'bag', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for topic, msg in (('/camera/camera_info', info), ('/camera/image_raw', img)):
+            conn = w.add_connection(topic, msg.__msgtype__, typestore=ts)
+            w.write(conn, 1_000_000_000, bytes(ts.serialize_cdr(msg, msg.__msgtype__)))
+    run = read_run(tmp_path / 'bag')
+    assert (run.camera.width, run.camera.height, run.camera.px) == (200, 150, 300.0)
