@@ -286,8 +286,8 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     ``p`` (rectification, stereo projection) do not change how a raw image is lifted and are
     not used. ``binning_x``, ``binning_y`` and ``roi`` = (x_offset, y_offset, width,
     height) (defaults: none) make it the camera of the reduced image
-    (:func:`camera_info_reduction`, :func:`reduced_camera`); the calibrated camera is
-    checked first, over its whole image.
+    (:func:`camera_info_reduction`, :func:`reduced_camera`): the calibrated camera is built
+    and checked over its whole image, then reduced.
 
     Raises :class:`~sphere_servo.core.central.CameraError` (a ``ValueError``) for an unknown
     model, a wrong number of coefficients, a K with skew or not of the form

@@ -10,7 +10,8 @@ y down) images a ray — a point ``P`` of the camera frame, at any positive scal
 where ``m_d = (x_d, y_d)`` is the *distorted normalized* point the model computes from the
 ray (pinhole: ``x̄ = P/Z`` then plumb_bob; fisheye: Kannala–Brandt; unified: Mei), pixels
 with (0, 0) the centre of the top-left pixel. :class:`CentralCamera` is the interface every
-model offers (a mixin for frozen dataclasses with fields ``px, py, u0, v0, width, height``):
+model offers (the frozen dataclass base of models with fields ``px, py, u0, v0, width,
+height``):
 
 - ``lift(uv)``            (N, 2) pixels → (N, 3) unit rays ``q`` on the projection sphere
 - ``lift_where(uv)``      the same without refusing: NaN rays where ``ok`` is False
@@ -114,7 +115,7 @@ class Reduction:
 @dataclass(frozen=True)
 class CentralCamera:
     """
-    Mixin: lift, project, their Jacobians and the field of a central camera model.
+    Base: lift, project, their Jacobians and the field of a central camera model.
 
     A model implements ``_distort_rays(P, jacobian) -> (m_d, ok, J)`` (distorted normalized
     points of (N, 3) points, the valid-field mask and, if asked, ``∂m_d/∂P`` (N, 2, 3)),

@@ -13,7 +13,8 @@ per teach, with the stamp of the image it came from (:attr:`FeaturesCore.desired
 - ``pose``: the exact projection of the target model at ``desired_cMo`` = [x y z roll pitch
   yaw] (m, rad; R = Rz Ry Rx); spherical targets only;
 - ``image``: the image file ``desired_image``, detected with the intrinsics of the first
-  usable camera_info (with ``intrinsics_error`` applied, as the detector does).
+  usable camera_info (with ``intrinsics_error`` applied and reduced by its binning and roi,
+  as the detector does: the file is an image of the published stream).
 
 Every measurement is checked before use (:func:`~sphere_servo.core.measurement.
 validated_observation`, with the field of the latest usable camera_info; a pinhole's until
