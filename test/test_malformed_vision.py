@@ -16,7 +16,7 @@ import pytest
 
 pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402, I100
-from sensor_msgs.msg import CameraInfo, Image, JointState  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, JointState, RegionOfInterest  # noqa: E402
 from sphere_servo.core.camera import CameraIntrinsics  # noqa: E402
 from sphere_servo.core.targets import special_sphere  # noqa: E402
 from sphere_servo.experiments.scenarios import CMO_DESIRED  # noqa: E402
@@ -110,6 +110,13 @@ DETECTOR_CASES = {  # kind: (camera_info fields, image fields, what the log line
     'NaN distortion': ({'d': [math.nan, 0.0, 0.0, 0.0, 0.0]}, {}, ['k1', 'finite']),
     'unknown distortion model': ({'distortion_model': 'rational_polynomial',
                                   'd': [0.0] * 8}, {}, ['unsupported distortion_model']),
+    'roi outside the image': ({'roi': RegionOfInterest(x_offset=100, width=640, height=480)},
+                              {}, ['CameraInfo.roi.x_offset + roi.width', '100 + 640 = 740']),
+    'roi of zero width only': ({'roi': RegionOfInterest(height=480)}, {},
+                               ['CameraInfo.roi (x_offset, y_offset, width, height)',
+                                'both 0 (the full image) or both > 0']),
+    'binning, the full image': ({'binning_x': 2, 'binning_y': 2}, {},
+                                ['camera size = 320x240', 'binning_x = 2, binning_y = 2']),
     'bad encoding': (None, {'encoding': 'yuv422'}, ["unsupported image encoding 'yuv422'"]),
     'step and data mismatch': (None, {'data': bytes(1000)}, ['image data has 1000 bytes']),
     'zero size': (None, {'height': 0, 'data': b''}, ['zero size']),
@@ -135,6 +142,28 @@ def test_detector_refuses(kind, detector):
     assert in_log(d.proc, *needles[:1]), d.proc.log()[-2000:]
     meas, st = d.until(d.info(), _found)  # and it works again
     assert 'b_x' in meas.name
+
+
+def test_detector_reads_a_decimated_image_with_the_full_camera_info(detector):
+    """crop_decimate's stream: the calibrated camera_info, binning 2 and an roi; found."""
+    d = detector
+    full, _ = d.until(d.info(), _found)
+    x, y, w, h = 40, 20, 560, 440  # the sphere stays inside this crop
+    small = np.ascontiguousarray(d.rgb[y:y + h:2, x:x + w:2])
+    info = d.info(binning_x=2, binning_y=2,
+                  roi=RegionOfInterest(x_offset=x, y_offset=y, width=w, height=h))
+    meas, st = d.until(info, _found, height=h // 2, width=w // 2, step=3 * w // 2,
+                       data=small.tobytes())
+    got, want = dict(zip(meas.name, meas.position)), dict(zip(full.name, full.position))
+    b, b_full = (np.array([v[f'b_{a}'] for a in 'xyz']) for v in (got, want))
+    assert np.degrees(np.arccos(min(1.0, b @ b_full))) < 0.2, (b, b_full)
+    assert abs(got['r_delta'] / want['r_delta'] - 1.0) < 0.02
+    assert 'P2_qx' in meas.name and alive(d.proc)
+    # the same image with the camera_info of the full image: refused, by size
+    meas, st = d.until(d.info(), lambda m, s: s.message == 'rejected', height=h // 2,
+                       width=w // 2, step=3 * w // 2, data=small.tobytes())
+    assert len(meas.name) == 0 and 'camera size = 640x480' in values(st)['reason']
+    assert 'b_x' in d.until(d.info(), _found)[0].name
 
 
 @pytest.mark.parametrize('encoding', ['rgba8', 'bgra8'])

@@ -25,7 +25,7 @@ from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.measurement import Observation, observe
 from sphere_servo.pipeline.common import parse_stamp, Refusal, stamp_text
-from sphere_servo.pipeline.detector import camera_from_info
+from sphere_servo.pipeline.detector import camera_from_msg
 from sphere_servo.pipeline.features import observation_from_image, read_image
 from sphere_servo.pipeline.params import ParameterError
 from sphere_servo.sim.arm import pose_from_xyz_rpy
@@ -74,8 +74,7 @@ def _from_image(pipe: Pipeline, path: Path, cameras: Cameras) -> Desired:
     if not cameras.infos:
         raise BagError('--desired image needs a camera_info in the bag')
     info = cameras.infos[0][1]
-    cam = camera_from_info(info.width, info.height, info.k, info.d,
-                           pipe.features.params.intrinsics_error, info.distortion_model)
+    cam = camera_from_msg(info, pipe.features.params.intrinsics_error)
     try:
         if isinstance(cam, Refusal):
             raise ValueError(cam.reason)

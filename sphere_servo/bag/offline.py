@@ -16,7 +16,7 @@ from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.measurement import Observation
 from sphere_servo.pipeline.common import Refusal, stamp_ns
 from sphere_servo.pipeline.config import load_node_params, section
-from sphere_servo.pipeline.detector import camera_from_info, DetectorCore, DetectStatus
+from sphere_servo.pipeline.detector import camera_from_msg, DetectorCore, DetectStatus
 from sphere_servo.pipeline.features import FeaturesCore, FeaturesOutput
 from sphere_servo.pipeline.params import DetectorParams, FeaturesParams, ServoParams
 from sphere_servo.pipeline.servo import ServoCommand, ServoCore, Unanswered
@@ -135,8 +135,7 @@ class Pipeline:
 
     def camera_or_refusal(self, info) -> CentralCamera | Refusal:
         """Return the detector's camera of a (rosbags) CameraInfo, or why it has none."""
-        return camera_from_info(info.width, info.height, info.k, info.d,
-                                self.settings.detector.intrinsics_error, info.distortion_model)
+        return camera_from_msg(info, self.settings.detector.intrinsics_error)
 
     def frame(self, index: int, bag_ns: int, img, camera) -> Frame:
         """Return the :class:`Frame` of one recorded image."""

@@ -40,9 +40,11 @@ from sphere_servo.bag.offline import (desired_topic, features_topic, Frame, head
                                       Pipeline, recorded_types, Settings, STATE_TOPIC,
                                       TOPIC_TYPES, TWIST_TOPIC)
 from sphere_servo.core.camera import CameraIntrinsics
+from sphere_servo.core.camera_models import camera_info_reduction, reduced_camera
 from sphere_servo.core.features import FEATURE_SETS
 from sphere_servo.pipeline.arm_sim import sim_scene
 from sphere_servo.pipeline.config import load_node_params, section
+from sphere_servo.pipeline.detector import binning_roi
 from sphere_servo.pipeline.params import ArmSimParams
 from sphere_servo.pipeline.servo import ServoState
 from sphere_servo.pipeline.vectors import Measurement
@@ -73,7 +75,8 @@ class Run:
     The histories of one recorded run, by image stamp (ns).
 
     frames     image stamps the video and the replay show, in time order.
-    camera     intrinsics of the first camera_info (None if the bag has none).
+    camera     intrinsics of the recorded images: the first camera_info's, reduced by its
+               binning and roi (None if the bag has none, or it is unusable).
     meas       recorded measurement values by stamp ({} when the sphere was not detected).
     error_norm the servo's ‖s − s*‖₂ of ``feature_set``; ``twists`` its twist (v, ω).
     states     the servo's state text; ``iterations`` its iteration count (its last state's).
@@ -196,8 +199,10 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
     if msgs[INFO_TOPIC]:
         info = msgs[INFO_TOPIC][0][1]
         try:
-            run.camera = CameraIntrinsics.from_camera_info_fields(info.width, info.height,
-                                                                  info.k, info.d)
+            run.camera = reduced_camera(
+                CameraIntrinsics.from_camera_info_fields(info.width, info.height, info.k,
+                                                         info.d),
+                camera_info_reduction(info.width, info.height, **binning_roi(info)))
         except ValueError:
             run.camera = None
     run.meas = {header_ns(m.header): dict(zip(m.name, m.position))

@@ -24,17 +24,21 @@ model is :class:`~sphere_servo.core.camera.CameraIntrinsics`.
 :func:`camera_from_camera_info_fields` builds the right model from CameraInfo fields and
 refuses what it cannot honour (an unknown model, a wrong number of coefficients, skew, NaN,
 a focal length ≤ 0, ξ < 0, a distortion that folds inside the image) with ``ValueError``.
+With ``binning_x``, ``binning_y`` and ``roi`` it is the camera of the published image that
+these derive from the calibrated one (:func:`camera_info_reduction`, image_geometry's
+convention: :class:`~sphere_servo.core.central.Reduction`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 import math
 
 import numpy as np
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.central import CameraError, CentralCamera, Lifted
+from sphere_servo.core.central import (CameraError, CentralCamera, Lifted,
+                                       MAX_IMAGE_SIDE, Reduction)
 from sphere_servo.core.distortion import (det2, first_fold, odd_poly, radtan, solve_odd_poly,
                                           undistort_radtan)
 from sphere_servo.core.validation import Bound, check_number, refuse
@@ -271,7 +275,7 @@ MODELS = ('plumb_bob', 'equidistant', 'unified')
 
 
 def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str = 'plumb_bob',
-                                   r=None, p=None):
+                                   r=None, p=None, *, binning_x=0, binning_y=0, roi=None):
     """
     Build the camera model of ``sensor_msgs/CameraInfo`` fields.
 
@@ -280,7 +284,10 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     :class:`UnifiedCamera` for ``unified`` (5 d: ξ, k1, k2, p1, p2). An empty ``d`` with
     ``plumb_bob``, ``equidistant`` or an empty model name means no distortion. ``r`` and
     ``p`` (rectification, stereo projection) do not change how a raw image is lifted and are
-    not used.
+    not used. ``binning_x``, ``binning_y`` and ``roi`` = (x_offset, y_offset, width,
+    height) (defaults: none) make it the camera of the reduced image
+    (:func:`camera_info_reduction`, :func:`reduced_camera`): the calibrated camera is built
+    and checked over its whole image, then reduced.
 
     Raises :class:`~sphere_servo.core.central.CameraError` (a ``ValueError``) for an unknown
     model, a wrong number of coefficients, a K with skew or not of the form
@@ -288,6 +295,11 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     of its physical range, a principal point far outside the image, ξ < 0; see
     ``CentralCamera._check_intrinsics``) and a distortion that folds inside the image.
     """
+    reduction = camera_info_reduction(width, height, binning_x, binning_y, roi)
+    return reduced_camera(_calibrated_camera(width, height, k, d, distortion_model), reduction)
+
+
+def _calibrated_camera(width, height, k, d, distortion_model):
     k = np.asarray(k, dtype=float).ravel()
     if k.size != 9:
         refuse(CameraError, 'CameraInfo.k', k.tolist(), Bound.SHAPE,
@@ -331,14 +343,94 @@ def camera_from_camera_info_fields(width, height, k, d=(), distortion_model: str
     return cam
 
 
+def _whole(quantity: str, value, lo: int, hi: int | None = None, limit: str = '') -> int:
+    """Return ``value`` as an int in ``[lo, hi]``, or refuse it (CameraError naming it)."""
+    x = check_number(CameraError, quantity, value)
+    if not (x == int(x) and lo <= x and (hi is None or x <= hi)):
+        refuse(CameraError, quantity, value, Bound.RANGE,
+               limit or f'a whole number ≥ {lo}' + ('' if hi is None else f' and ≤ {hi}'))
+    return int(x)
+
+
+def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
+                          ) -> Reduction | None:
+    """
+    Return how CameraInfo ``binning_x``, ``binning_y`` and ``roi`` reduce the calibrated image.
+
+    image_geometry's rules: a binning of 0 means 1; an ``roi`` = (x_offset, y_offset, width,
+    height) of zero width and height (all zeros, the default, or None) is the full image
+    ``(0, 0, width, height)``. None when the published image is the calibrated one. The
+    ``roi``'s ``do_rectify`` is not taken: this package lifts the raw pixels through the
+    distortion model, and a raw roi is the same in both cases. Refused
+    (:class:`~sphere_servo.core.central.CameraError`, naming the fields and their values):
+    a binning or an roi entry that is not a whole number ≥ 0, a binning larger than the
+    image, an roi of zero width but not zero height (or the reverse), an roi that leaves the
+    calibrated ``width × height`` image, and a published image of no pixel.
+    """
+    bx = _whole('CameraInfo.binning_x', binning_x, 0) or 1
+    by = _whole('CameraInfo.binning_y', binning_y, 0) or 1
+    if roi is None:
+        roi = (0, 0, 0, 0)
+    try:
+        values = list(roi)
+    except TypeError:
+        values = None
+    if values is None or len(values) != 4:
+        refuse(CameraError, 'CameraInfo.roi', roi, Bound.SHAPE,
+               '4 whole numbers (x_offset, y_offset, width, height)')
+    roi = tuple(_whole(f'CameraInfo.roi.{n}', v, 0)
+                for n, v in zip(('x_offset', 'y_offset', 'width', 'height'), values))
+    if bx == by == 1 and roi[2] == roi[3] == 0:
+        return None
+    W = _whole('width', width, 1, MAX_IMAGE_SIDE)
+    H = _whole('height', height, 1, MAX_IMAGE_SIDE)
+    x, y, w, h = roi
+    if w == h == 0:  # RegionOfInterest.msg: a size of (0, 0) is the full resolution
+        x, y, w, h = roi = (0, 0, W, H)
+    if (w == 0) != (h == 0):
+        refuse(CameraError, 'CameraInfo.roi (x_offset, y_offset, width, height)', roi,
+               Bound.GEOMETRY, 'roi.width and roi.height are both 0 (the full image) or '
+               'both > 0')
+    for a, n, off, size, full in (('x', 'width', x, w, W), ('y', 'height', y, h, H)):
+        if off + size > full:
+            refuse(CameraError, f'CameraInfo.roi.{a}_offset + roi.{n}',
+                   f'{off} + {size} = {off + size}', Bound.RANGE,
+                   f'≤ {n} = {full}: the roi must lie inside the calibrated {W}x{H} image')
+    _whole('CameraInfo.binning_x', bx, 1, W, f'≤ width = {W}')
+    _whole('CameraInfo.binning_y', by, 1, H, f'≤ height = {H}')
+    red = Reduction(W, H, bx, by, roi)
+    if 0 in red.size:
+        refuse(CameraError, 'reduced image size', f'{red.size[0]}x{red.size[1]}', Bound.RANGE,
+               f'at least 1x1: roi.width // binning_x = {w} // {bx} = {w // bx}, '
+               f'roi.height // binning_y = {h} // {by} = {h // by}')
+    return None if red.size == (W, H) else red
+
+
+def reduced_camera(camera, reduction: Reduction | None):
+    """
+    Return ``camera`` (of the calibrated image) made the camera of the reduced image.
+
+    The same model, distortion and field, with the K of
+    :class:`~sphere_servo.core.central.Reduction` and its size; ``camera`` itself when
+    ``reduction`` is None. CameraError if no camera has the reduced intrinsics.
+    """
+    if reduction is None:
+        return camera
+    (x, y, _, _), bx, by = reduction.roi, reduction.binning_x, reduction.binning_y
+    w, h = reduction.size
+    return replace(camera, px=camera.px / bx, py=camera.py / by, u0=(camera.u0 - x) / bx,
+                   v0=(camera.v0 - y) / by, width=w, height=h, reduction=reduction)
+
+
 def check_camera_for_image(camera, width: int, height: int, applies_distortion: bool):
     """
     Return ``camera`` if it is the camera of an image of ``width × height`` pixels, else refuse.
 
     :class:`~sphere_servo.core.central.CameraError` when
 
-    - the camera's size differs from the image's (both sizes named): its K belongs to
-      another resolution or another camera;
+    - the camera's size differs from the image's (both sizes named, and the CameraInfo
+      binning and roi that made the camera's size, if any): its K belongs to another
+      resolution or another camera;
     - ``applies_distortion`` is False (the consumer uses K only, e.g. the conic of the
       silhouette in the normalized plane) and the camera is not a distortion-free pinhole: a
       consumer that ignored a model or its coefficients would measure a wrong sphere, with
@@ -348,8 +440,11 @@ def check_camera_for_image(camera, width: int, height: int, applies_distortion: 
     The intrinsics themselves were checked when the camera was built.
     """
     if (int(camera.width), int(camera.height)) != (int(width), int(height)):
+        red = getattr(camera, 'reduction', None)
         refuse(CameraError, 'camera size', f'{int(camera.width)}x{int(camera.height)}',
-               Bound.MISMATCH, f'the size of the image, {int(width)}x{int(height)}')
+               Bound.MISMATCH, f'the size of the image, {int(width)}x{int(height)}'
+               + ('' if red is None else f" (the camera size comes from the camera_info's "
+                  f'{red})'))
     if not applies_distortion:
         if not isinstance(camera, CameraIntrinsics):
             refuse(CameraError, 'camera model', type(camera).__name__, Bound.UNSUPPORTED,

@@ -10,7 +10,8 @@ y down) images a ray — a point ``P`` of the camera frame, at any positive scal
 where ``m_d = (x_d, y_d)`` is the *distorted normalized* point the model computes from the
 ray (pinhole: ``x̄ = P/Z`` then plumb_bob; fisheye: Kannala–Brandt; unified: Mei), pixels
 with (0, 0) the centre of the top-left pixel. :class:`CentralCamera` is the interface every
-model offers (a mixin for frozen dataclasses with fields ``px, py, u0, v0, width, height``):
+model offers (the frozen dataclass base of models with fields ``px, py, u0, v0, width,
+height``):
 
 - ``lift(uv)``            (N, 2) pixels → (N, 3) unit rays ``q`` on the projection sphere
 - ``lift_where(uv)``      the same without refusing: NaN rays where ``ok`` is False
@@ -21,6 +22,8 @@ model offers (a mixin for frozen dataclasses with fields ``px, py, u0, v0, width
   of that field from the optical axis (rad); ``in_image``, ``width``, ``height``;
   ``in_view(P, margin)`` the rays imaged inside the image (never refuses)
 - ``with_error(px, py, u0, v0)``  the same model with relative intrinsics errors
+- ``reduction``           None, or the :class:`Reduction` (CameraInfo binning and roi) that
+  made this camera's image from a calibrated one (``camera_models.reduced_camera``)
 
 ``project`` and ``lift`` refuse (:class:`GeometryError`) a ray outside the valid field or a
 pixel no valid ray reaches, instead of returning a folded or extrapolated answer. The
@@ -33,7 +36,7 @@ is not invertible). With tangential terms the field can end slightly nearer than
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 import math
 from typing import NamedTuple
 
@@ -69,17 +72,64 @@ class Lifted(NamedTuple):
     ok: np.ndarray
 
 
+@dataclass(frozen=True)
+class Reduction:
+    """
+    How an image derives from the calibrated one: ``sensor_msgs/CameraInfo`` binning and roi.
+
+    image_geometry's convention (``PinholeCameraModel``, REP 104): the calibrated image is
+    ``full_width × full_height``; the published image is its ``roi = (x_offset, y_offset,
+    width, height)`` decimated by ``binning_x × binning_y`` (each ≥ 1), of ``width //
+    binning_x × height // binning_y`` pixels, and its pixel ``(u, v)`` is the calibrated
+    image's ``(x_offset + binning_x·u, y_offset + binning_y·v)``. So its K is ``fx/bx, fy/by,
+    (cx − x_offset)/bx, (cy − y_offset)/by`` and its distortion is the calibrated one (it acts
+    on normalized coordinates, or on the unit sphere). That is exact for nearest-pixel
+    decimation (``image_proc``'s crop_decimate by default: one pixel of each block); binning
+    that averages a block centres the pixel ``(b − 1)/2`` calibrated pixels further, a
+    quarter of a published pixel at 2×2, which this convention does not model.
+    Built and checked by ``camera_models.camera_info_reduction``.
+    """
+
+    full_width: int
+    full_height: int
+    binning_x: int
+    binning_y: int
+    roi: tuple[int, int, int, int]
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """Return (width, height) of the published image."""
+        return self.roi[2] // self.binning_x, self.roi[3] // self.binning_y
+
+    def to_full(self, u: float, v: float) -> tuple[float, float]:
+        """Return the calibrated image's coordinates of the published image's ``(u, v)``."""
+        return self.roi[0] + self.binning_x * u, self.roi[1] + self.binning_y * v
+
+    def __str__(self) -> str:
+        return (f'binning_x = {self.binning_x}, binning_y = {self.binning_y}, roi (x_offset, '
+                f'y_offset, width, height) = {self.roi} of the calibrated '
+                f'{self.full_width}x{self.full_height} image')
+
+
 # --- the interface ---------------------------------------------------------------------------
+@dataclass(frozen=True)
 class CentralCamera:
     """
-    Mixin: lift, project, their Jacobians and the field of a central camera model.
+    Base: lift, project, their Jacobians and the field of a central camera model.
 
     A model implements ``_distort_rays(P, jacobian) -> (m_d, ok, J)`` (distorted normalized
     points of (N, 3) points, the valid-field mask and, if asked, ``∂m_d/∂P`` (N, 2, 3)),
     ``_undistort(m_d) -> Lifted``, ``max_angle``, ``_radial_limit() -> (radius, is_fold)``
     (the distorted radius where the field ends along a radius, and whether it ends at a
     distortion fold) and ``_has_tangential``.
+
+    ``reduction`` (keyword only, not compared): the :class:`Reduction` that made this
+    camera's image from a calibrated one, or None. It bounds the principal point by the
+    calibrated image, not by a crop that may lie far from it, and names itself when the
+    camera does not fit an image (``camera_models.check_camera_for_image``).
     """
+
+    reduction: Reduction | None = field(default=None, kw_only=True, compare=False, repr=False)
 
     # --- pixels ↔ distorted normalized ----------------------------------------------------
     def _md(self, uv: np.ndarray) -> Points2:
@@ -157,11 +207,17 @@ class CentralCamera:
         """
         Refuse a principal point farther than ``PRINCIPAL_POINT_MARGIN`` image sizes out.
 
-        That is ``−m·W ≤ u0 ≤ (1 + m)·W`` and the same for ``v0`` with H (:class:`CameraError`).
+        That is ``−m·W ≤ u0 ≤ (1 + m)·W`` and the same for ``v0`` with H (:class:`CameraError`),
+        in the calibrated image when the camera has a ``reduction``.
         """
         m = PRINCIPAL_POINT_MARGIN
-        for name, size in (('u0', self.width), ('v0', self.height)):
-            check_range(CameraError, name, getattr(self, name), -m * size, (1.0 + m) * size)
+        u0, v0, W, H, where = self.u0, self.v0, self.width, self.height, ''
+        red = self.reduction
+        if red is not None:  # a crop far from the centre is no corrupt K
+            (u0, v0), W, H = red.to_full(u0, v0), red.full_width, red.full_height
+            where = ' of the calibrated image'
+        for name, value, size in (('u0', u0, W), ('v0', v0, H)):
+            check_range(CameraError, name + where, value, -m * size, (1.0 + m) * size)
 
     # --- rays ↔ pixels --------------------------------------------------------------------
     @staticmethod

@@ -7,16 +7,22 @@ The detector's logic without ROS: camera_info → the camera, an image buffer �
 applies each model's distortion) with ``intrinsics_error`` applied to its intrinsics:
 relative errors (px, py, u0, v0), the paper's calibration-error experiment is
 ``[0.35, 0.30, -0.25, 0.27]`` — and runs the vision layer's
-:class:`~sphere_servo.vision.detector.Detector` on each image. A camera_info is *refused*
+:class:`~sphere_servo.vision.detector.Detector` on each image. The camera is that of the
+published image: a camera_info's ``binning_x``, ``binning_y`` and ``roi`` (image_proc's
+crop_decimate, a driver's hardware binning) make it the calibrated camera reduced as
+image_geometry does (:func:`~sphere_servo.core.camera_models.camera_info_reduction`); only
+raw images are taken (``roi.do_rectify`` is not used). A camera_info is *refused*
 (no camera, and why) when :func:`camera_from_info` refuses it: a K no camera has (not
 finite, skew, ``fx = 1e300``, a focal length ≤ 0, a principal point far off the image), an
-unknown distortion model, or an ``intrinsics_error`` that makes the camera impossible (the
-error is named). An image is *rejected*, the result says why and its measurement is empty
-(target lost, so the servo stops), on a bad buffer (unsupported encoding, ``step``/``data``
-lengths that disagree, zero size), no usable camera, or a camera the detector cannot use
-for it (:func:`detector_camera`: another size than the image's, or a model whose
-distortion the detector does not apply). :meth:`DetectorCore.status` is the node's status:
-the latest image's outcome.
+unknown distortion model, a binning or roi that no image has (not a whole number ≥ 0, an
+roi leaving the calibrated image or of zero width only, an image of no pixel), or an
+``intrinsics_error`` that makes the camera impossible (the error is named). An image is
+*rejected*, the result says why and its measurement is empty (target lost, so the servo
+stops), on a bad buffer (unsupported encoding, ``step``/``data`` lengths that disagree,
+zero size), no usable camera, or a camera the detector cannot use for it
+(:func:`detector_camera`: another size than the image's, named with the binning and roi
+that made the camera's, or a model whose distortion the detector does not apply).
+:meth:`DetectorCore.status` is the node's status: the latest image's outcome.
 """
 from __future__ import annotations
 
@@ -27,8 +33,8 @@ from functools import lru_cache
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
-                                             check_camera_for_image, FisheyeCamera,
-                                             UnifiedCamera)
+                                             camera_info_reduction, check_camera_for_image,
+                                             FisheyeCamera, reduced_camera, UnifiedCamera)
 from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.targets import make_target
 from sphere_servo.core.types import Image
@@ -50,39 +56,68 @@ DISTORTION_APPLIED: frozenset[type] = frozenset({CameraIntrinsics, FisheyeCamera
                                                  UnifiedCamera})
 
 
+def binning_roi(info) -> dict:
+    """
+    Return the ``binning_x``, ``binning_y`` and ``roi`` keywords of :func:`camera_from_info`.
+
+    ``info``: a ``sensor_msgs/CameraInfo`` (rclpy's or rosbags': the same fields); ``roi`` as
+    (x_offset, y_offset, width, height).
+    """
+    r = info.roi
+    return {'binning_x': info.binning_x, 'binning_y': info.binning_y,
+            'roi': (r.x_offset, r.y_offset, r.width, r.height)}
+
+
 def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[float] | None,
                      intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.0),
-                     distortion_model: str = 'plumb_bob') -> CentralCamera | Refusal:
+                     distortion_model: str = 'plumb_bob', *, binning_x: int = 0,
+                     binning_y: int = 0, roi: Sequence[int] | None = None
+                     ) -> CentralCamera | Refusal:
     """
     Return the camera of camera_info fields with ``intrinsics_error`` applied, or why not.
 
     The model is :func:`~sphere_servo.core.camera_models.camera_from_camera_info_fields`'s
     (which refuses a K or a distortion no camera has); ``with_error`` names the error
-    parameter that makes the camera impossible. A camera_info comes with every image, almost
-    always the same one: equal fields give the same (immutable) camera or refusal without
-    building it again, and the same object, so what is derived from a camera (the
-    detector's lift tables) is kept too.
+    parameter that makes the camera impossible. ``binning_x``, ``binning_y`` and ``roi`` =
+    (x_offset, y_offset, width, height) (defaults: none, the image is the calibrated one;
+    :func:`binning_roi` reads them from a message) make it the camera of the reduced image
+    (:func:`~sphere_servo.core.camera_models.camera_info_reduction`, image_geometry's
+    convention); ``intrinsics_error`` applies to the received, calibrated intrinsics, before
+    the reduction. A camera_info comes with every image, almost always the same one: equal
+    fields give the same (immutable) camera or refusal without building it again, and the
+    same object, so what is derived from a camera (the detector's lift tables) is kept too.
     """
     try:
         key = (width, height, tuple(float(x) for x in k),
                None if d is None else tuple(float(x) for x in d),
-               tuple(float(x) for x in intrinsics_error), str(distortion_model))
+               tuple(float(x) for x in intrinsics_error), str(distortion_model),
+               binning_x, binning_y, None if roi is None else tuple(roi))
         hash(key)
     except (TypeError, ValueError):  # not numbers: the builder says what is wrong
-        return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
+        return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model,
+                                 binning_x, binning_y, roi)
     return _camera_from_key(*key)
 
 
+def camera_from_msg(info, intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.0)
+                    ) -> CentralCamera | Refusal:
+    """Return :func:`camera_from_info` of a whole ``sensor_msgs/CameraInfo`` (rclpy, rosbags)."""
+    return camera_from_info(info.width, info.height, info.k, info.d, intrinsics_error,
+                            info.distortion_model, **binning_roi(info))
+
+
 @lru_cache(maxsize=16)
-def _camera_from_key(width, height, k, d, intrinsics_error, distortion_model):
-    return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model)
+def _camera_from_key(*key):
+    return _camera_from_info(*key)
 
 
-def _camera_from_info(width, height, k, d, intrinsics_error, distortion_model):
+def _camera_from_info(width, height, k, d, intrinsics_error, distortion_model, binning_x,
+                      binning_y, roi):
     try:
+        reduction = camera_info_reduction(width, height, binning_x, binning_y, roi)
         cam = camera_from_camera_info_fields(width, height, k, d, distortion_model)
         ex, ey, eu, ev = intrinsics_error
-        return cam.with_error(px=ex, py=ey, u0=eu, v0=ev)
+        return reduced_camera(cam.with_error(px=ex, py=ey, u0=eu, v0=ev), reduction)
     except ValueError as exc:  # CameraError and ValueError of the numbers
         return Refusal(str(exc))
 
@@ -167,11 +202,17 @@ class DetectorCore:
         return NodeStatus(state, LEVELS[state], values)
 
     def on_camera_info(self, width: int, height: int, k: Sequence[float],
-                       d: Sequence[float] | None,
-                       distortion_model: str = 'plumb_bob') -> CentralCamera | Refusal:
-        """Take the camera of a camera_info; a refused one leaves no camera, and says why."""
+                       d: Sequence[float] | None, distortion_model: str = 'plumb_bob', *,
+                       binning_x: int = 0, binning_y: int = 0,
+                       roi: Sequence[int] | None = None) -> CentralCamera | Refusal:
+        """
+        Take the camera of a camera_info; a refused one leaves no camera, and says why.
+
+        ``binning_x``, ``binning_y``, ``roi``: as :func:`camera_from_info`.
+        """
         cam = camera_from_info(width, height, k, d, self.params.intrinsics_error,
-                               distortion_model)
+                               distortion_model, binning_x=binning_x, binning_y=binning_y,
+                               roi=roi)
         refused = isinstance(cam, Refusal)
         self.camera = None if refused else cam
         self.refused = cam.reason if refused else ''

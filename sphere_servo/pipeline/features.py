@@ -13,7 +13,8 @@ per teach, with the stamp of the image it came from (:attr:`FeaturesCore.desired
 - ``pose``: the exact projection of the target model at ``desired_cMo`` = [x y z roll pitch
   yaw] (m, rad; R = Rz Ry Rx); spherical targets only;
 - ``image``: the image file ``desired_image``, detected with the intrinsics of the first
-  usable camera_info (with ``intrinsics_error`` applied, as the detector does).
+  usable camera_info (with ``intrinsics_error`` applied and reduced by its binning and roi,
+  as the detector does: the file is an image of the published stream).
 
 Every measurement is checked before use (:func:`~sphere_servo.core.measurement.
 validated_observation`, with the field of the latest usable camera_info; a pinhole's until
@@ -266,17 +267,21 @@ class FeaturesCore:
             f': s*_n,t = {s_n.desired[:3].round(4).tolist()}' if s_n else '')
 
     def on_camera_info(self, width: int, height: int, k: Sequence[float],
-                       d: Sequence[float] | None, distortion_model: str = 'plumb_bob',
+                       d: Sequence[float] | None, distortion_model: str = 'plumb_bob', *,
+                       binning_x: int = 0, binning_y: int = 0, roi: Sequence[int] | None = None,
                        ) -> Observation | Refusal | None:
         """
         Take the camera's field; detect the desired image with it (``desired_source: image``).
 
+        The camera is the detector's: that of the published image, reduced by ``binning_x``,
+        ``binning_y`` and ``roi`` (:func:`~sphere_servo.pipeline.detector.camera_from_info`).
         Returns the desired observation set, a refusal (the image is unusable with this
         camera), or None when there is nothing to do (another source, or already set). A
         camera_info that no camera has leaves the field as it was.
         """
         cam = camera_from_info(width, height, k, d, self.params.intrinsics_error,
-                               distortion_model)
+                               distortion_model, binning_x=binning_x, binning_y=binning_y,
+                               roi=roi)
         if not isinstance(cam, Refusal):
             self.field = cam.max_angle
         if self.source is not DesiredSource.IMAGE or self.sets:

@@ -5,7 +5,10 @@ Subscribes
     ``camera/image_raw``    sensor_msgs/Image       rgb8, bgr8, mono8, rgba8 or bgra8
                             (``image_transport: compressed``: ``camera/image_raw/compressed``,
                             sensor_msgs/CompressedImage, JPEG or PNG)
-    ``camera/camera_info``  sensor_msgs/CameraInfo  intrinsics (k); the latest one is used
+    ``camera/camera_info``  sensor_msgs/CameraInfo  intrinsics (k, d, distortion_model),
+                            binning_x/binning_y and roi (the image a crop and/or decimation
+                            of the calibrated one, as image_proc's crop_decimate publishes:
+                            image_geometry's convention); the latest one is used
 Publishes (header = the image's header, so stamps flow through the pipeline)
     ``detector/measurement``  sensor_msgs/JointState  named values, see
                               :mod:`sphere_servo.ros.vectors`; empty = no sphere
@@ -17,9 +20,10 @@ Publishes (header = the image's header, so stamps flow through the pipeline)
     ``/diagnostics``          the same status, on change and at 1 Hz
 
 A bad image (unsupported encoding, ``step``/``data`` lengths that disagree, zero size), a
-missing or refused ``camera_info`` (an impossible K, an unknown distortion model, a
-camera_info of another size than the image, both sizes logged, a non-zero distortion the
-detector does not apply) is logged as a clear error and answered with an empty measurement
+missing or refused ``camera_info`` (an impossible K, an unknown distortion model, a binning
+or roi no image has, a camera_info of another size than the image, both sizes logged with
+the binning and roi that made the camera's, a non-zero distortion the detector does not
+apply) is logged as a clear error and answered with an empty measurement
 (target lost, so the servo stops); the node keeps running. The logic is
 :class:`~sphere_servo.pipeline.detector.DetectorCore`'s.
 
@@ -32,7 +36,7 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from sphere_servo.pipeline.common import Refusal
-from sphere_servo.pipeline.detector import DetectorCore, DetectStatus
+from sphere_servo.pipeline.detector import binning_roi, DetectorCore, DetectStatus
 from sphere_servo.pipeline.params import DetectorParams
 from sphere_servo.ros.conversions import image_from_array
 from sphere_servo.ros.diagnostics import StatusPublisher
@@ -70,7 +74,7 @@ class DetectorNode(Node):
     @guarded
     def _on_info(self, msg: CameraInfo) -> None:
         cam = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
-                                       msg.distortion_model)
+                                       msg.distortion_model, **binning_roi(msg))
         if isinstance(cam, Refusal):
             self.log.error(f'bad camera_info, ignored: {cam.reason}')
 

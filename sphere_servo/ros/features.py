@@ -4,7 +4,8 @@
 Subscribes
     ``detector/measurement``  sensor_msgs/JointState  (see :mod:`sphere_servo.ros.vectors`)
     ``camera/camera_info``    sensor_msgs/CameraInfo  the camera's field (for the check of the
-                              measurements), and its K for ``desired_source: image``
+                              measurements), and its K for ``desired_source: image``; with
+                              its binning and roi, as the detector's
 Publishes
     ``features/<set>``          sensor_msgs/JointState  for each set in ``sets`` (default
                                 s_n): ``position`` = s, header = the image's; empty = target
@@ -35,6 +36,7 @@ from __future__ import annotations
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, JointState
 from sphere_servo.pipeline.common import Refusal, stamp_ns
+from sphere_servo.pipeline.detector import binning_roi
 from sphere_servo.pipeline.features import DesiredSource, FeaturesCore
 from sphere_servo.pipeline.params import FeaturesParams
 from sphere_servo.ros.conversions import stamp_from_ns
@@ -84,7 +86,7 @@ class FeaturesNode(Node):
     @guarded
     def _on_info(self, msg: CameraInfo) -> None:
         out = self.core.on_camera_info(msg.width, msg.height, msg.k, msg.d,
-                                       msg.distortion_model)
+                                       msg.distortion_model, **binning_roi(msg))
         if isinstance(out, Refusal):
             self.log.error(out.reason)
         elif out is not None:  # a file, not an image of the run: a zero stamp
