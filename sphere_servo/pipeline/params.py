@@ -353,6 +353,11 @@ class DetectorParams(NodeParams):
                                  "'compressed': sensor_msgs/CompressedImage (JPEG, PNG) on "
                                  'camera/image_raw/compressed, as image_transport names it',
                                  choices=('raw', 'compressed'), **FIXED)
+    image_reliability: str = param(
+        'reliable', "reliability of the image and camera_info readers: 'reliable' (the "
+        "pipeline's: lockstep needs every image) or 'best_effort' (also matches a camera "
+        'that publishes best effort, as SensorDataQoS does, which a reliable reader never '
+        'matches)', choices=('reliable', 'best_effort'), **FIXED)
 
     def validate(self) -> None:
         """Check ``intrinsics_error`` (:func:`check_intrinsics_error`)."""

@@ -94,3 +94,14 @@ def observer(profile: QoSProfile, depth: int = 1000) -> QoSProfile:
     """Return a subscription QoS that matches ``profile``'s publishers, keep-last ``depth``."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=profile.reliability, durability=profile.durability)
+
+
+def best_effort(profile: QoSProfile) -> QoSProfile:
+    """
+    Return ``profile`` as a best-effort reader: it matches best-effort writers too.
+
+    For a camera that publishes best effort (``SensorDataQoS``), which a reliable reader
+    never matches (the detector's ``image_reliability``).
+    """
+    return QoSProfile(history=profile.history, depth=profile.depth,
+                      reliability=ReliabilityPolicy.BEST_EFFORT, durability=profile.durability)
