@@ -24,7 +24,7 @@ def recorded(tmp_path_factory):
 
 
 def test_images_the_tools_cannot_tell_apart_or_show(recorded, tmp_path):
-    """Unstamped images (no servo state), compressed images on the topic: refused."""
+    """Unstamped images (no servo state), compressed depth images on the topic: refused."""
     def unstamped(m):
         m.header.stamp.sec, m.header.stamp.nanosec = 0, 0
         return m
@@ -41,14 +41,16 @@ def test_images_the_tools_cannot_tell_apart_or_show(recorded, tmp_path):
         conn = w.add_connection('/camera/image_raw', 'sensor_msgs/msg/CompressedImage',
                                 typestore=ts)
         T, Hd = ts.types['builtin_interfaces/msg/Time'], ts.types['std_msgs/msg/Header']
-        png = cv2.imencode('.png', np.zeros((48, 64, 3), np.uint8))[1].ravel()
+        # image_transport's compressedDepth: a 12-byte header, then a 16-bit PNG
+        png = cv2.imencode('.png', np.zeros((48, 64), np.uint16))[1].ravel()
         for i in range(3):
             msg = ts.types['sensor_msgs/msg/CompressedImage'](
-                header=Hd(stamp=T(sec=1, nanosec=i * 1000), frame_id='c'), format='png',
-                data=png)
+                header=Hd(stamp=T(sec=1, nanosec=i * 33_333_333), frame_id='c'),
+                format='16UC1; compressedDepth png',
+                data=np.concatenate([np.zeros(12, np.uint8), png]))
             w.write(conn, i + 1, ts.serialize_cdr(msg, 'sensor_msgs/msg/CompressedImage'))
-    # before: an AttributeError traceback
-    refused(video, [c, '--quiet'], tmp_path / 'c.mp4', 'CompressedImage')
+    # before: an AttributeError traceback; JPEG and PNG are shown now (test_bag_compressed)
+    refused(video, [c, '--quiet'], tmp_path / 'c.mp4', 'compressedDepth')
 
 
 @pytest.mark.parametrize('fps', ['1e-9', '0.001', '1e6', 'nan', '-30'])

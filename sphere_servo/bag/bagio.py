@@ -2,7 +2,9 @@
 rosbag2 files without ROS.
 
 Open and validate a bag, list its topics, select what to play, iterate raw messages,
-summarise it, and decode its images for offline processing.
+summarise it, and decode its images for offline processing: ``sensor_msgs/msg/Image`` or
+``sensor_msgs/msg/CompressedImage`` (what ``ros2 bag record`` of image_transport's
+``compressed`` topic holds: JPEG or PNG, :mod:`sphere_servo.vision.compressed`).
 
 Pure module (no rclpy); shared by the ``record``, ``replay`` and ``reindex`` executables and
 by offline pipelines (``iter_images``). Bags are read by :class:`~sphere_servo.bag.reader.
@@ -21,6 +23,7 @@ import numpy as np
 from rosbags.interfaces import Connection
 from sphere_servo.bag.metadata import BagError, INFINITE_NS, qos_dict, qos_time
 from sphere_servo.bag.reader import BagReader, one_line, typestore
+from sphere_servo.vision.compressed import decode_compressed
 from sphere_servo.vision.image import image_from_buffer, LAYOUTS
 
 __all__ = [
@@ -28,8 +31,15 @@ __all__ = [
     'select_connections',
     'Skipped', 'Selection', 'other_definition', 'select', 'summary', 'format_summary',
     'iter_raw',
-    'image_to_array', 'iter_images', 'typestore', 'INFINITE_NS', 'qos_time',
+    'IMAGE_TYPE', 'COMPRESSED_TYPE', 'IMAGE_TYPES', 'is_compressed', 'image_connections',
+    'missing_image_topic',
+    'image_to_array', 'decode_image', 'iter_images', 'typestore', 'INFINITE_NS', 'qos_time',
 ]
+
+IMAGE_TYPE = 'sensor_msgs/msg/Image'
+COMPRESSED_TYPE = 'sensor_msgs/msg/CompressedImage'
+#: the types of an image topic the offline tools read
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 
 
 def topic_name(name: str) -> str:
@@ -257,6 +267,41 @@ def iter_raw(reader: BagReader, connections: list[Connection] | None = None,
         yield conn, ts, bytes(raw)
 
 
+def image_connections(reader: BagReader, topic: str) -> list[Connection]:
+    """
+    Return the connections of the image topic ``topic``; BagError if it has none to read.
+
+    Refused: a topic not in the bag (the message names ``TOPIC/compressed`` when the bag has
+    that instead: image_transport's compressed topic, to give as the image topic; it is never
+    taken silently), a topic of another type than :data:`IMAGE_TYPES`.
+    """
+    conns = _match(list(reader.connections), topic.strip())
+    if not conns:
+        raise BagError(missing_image_topic(reader, topic))
+    for c in conns:
+        if c.msgtype not in IMAGE_TYPES:
+            raise BagError(f'topic {c.topic} has type {c.msgtype}, not an image '
+                           f'({" or ".join(IMAGE_TYPES)})')
+    return conns
+
+
+def missing_image_topic(reader: BagReader, topic: str) -> str:
+    """Say that the image topic ``topic`` is not in the bag, and what to give instead."""
+    have = sorted({topic_name(c.topic) for c in reader.connections})
+    text = f'topic {topic_name(topic)} is not in the bag (it has {", ".join(have) or "no topics"})'
+    compressed = topic_name(topic).rstrip('/') + '/compressed'
+    if compressed in have:
+        text += f'; its compressed images: give --image-topic {compressed}'
+    return text
+
+
+def is_compressed(msg) -> bool:
+    """Tell a deserialized ``sensor_msgs/CompressedImage`` (rosbags, rclpy) from an Image."""
+    # rosbags' classes name their type; rclpy's do not, and only CompressedImage has a format
+    kind = getattr(msg, '__msgtype__', None)
+    return kind == COMPRESSED_TYPE if kind else hasattr(msg, 'format')
+
+
 def image_to_array(msg) -> np.ndarray:
     """
     Decode a deserialized sensor_msgs/Image (rosbags' dataclass) into a numpy array.
@@ -273,18 +318,35 @@ def image_to_array(msg) -> np.ndarray:
         raise BagError(str(exc)) from None
 
 
+def decode_image(msg) -> tuple[np.ndarray, str]:
+    """
+    Return ``(array, encoding)`` of a deserialized Image or CompressedImage.
+
+    An Image: :func:`image_to_array` and its own encoding (an alpha channel kept). A
+    CompressedImage: :func:`~sphere_servo.vision.compressed.decode_compressed` (``bgr8``,
+    ``rgb8`` as the producer gave the codec, or ``mono8``). BagError on what neither reads
+    (a compressedDepth or 16-bit image, corrupt or truncated bytes), saying why.
+    """
+    if not is_compressed(msg):
+        return image_to_array(msg), str(msg.encoding)
+    try:
+        return decode_compressed(msg.format, msg.data)
+    except ValueError as exc:
+        raise BagError(str(exc)) from None
+
+
 def iter_images(path: str | Path, topic: str = '/camera/image_raw',
                 ) -> Iterator[tuple[int, object, np.ndarray]]:
     """
-    Offline processing: (bag timestamp ns, header, image array) for each Image on ``topic``.
+    Offline processing: (bag timestamp ns, header, image array) for each image on ``topic``.
 
-    The header (``stamp.sec``, ``stamp.nanosec``, ``frame_id``) is kept so that whatever is
-    computed from the image can carry the image's own stamp, as the live nodes do.
+    An Image or a CompressedImage (:func:`decode_image`: a compressed colour image comes in
+    the order its producer gave the codec, usually bgr8). The header (``stamp.sec``,
+    ``stamp.nanosec``, ``frame_id``) is kept so that whatever is computed from the image can
+    carry the image's own stamp, as the live nodes do.
     """
     with bag(path) as reader:
-        conns = select_connections(reader, [topic])
+        conns = image_connections(reader, topic)
         for conn, ts, raw in iter_raw(reader, conns):
-            if conn.msgtype != 'sensor_msgs/msg/Image':
-                raise BagError(f'topic {conn.topic} has type {conn.msgtype}, not an Image')
             msg = reader.deserialize(raw, conn.msgtype)
-            yield ts, msg.header, image_to_array(msg)
+            yield ts, msg.header, decode_image(msg)[0]

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from rosbags.interfaces import Nodetype
 
-from sphere_servo.bag.bagio import bag, BagError, topic_name, typestore
+from sphere_servo.bag.bagio import bag, BagError, decode_image, topic_name, typestore
 from sphere_servo.bag.offline import (header_ns, IMAGE_TOPIC, iter_image_msgs, MEAS_TOPIC, TOL,
                                       TWIST_TOPIC)
 from sphere_servo.bag.regenerate import active, Result
@@ -26,7 +26,7 @@ from sphere_servo.core.features import make_feature_set
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.pipeline.servo import law_options
 from sphere_servo.pipeline.vectors import FEATURE_NAMES
-from sphere_servo.vision.detector import image_from_buffer
+from sphere_servo.vision.image import without_alpha
 
 
 def _vec(msg, topic: str) -> np.ndarray:
@@ -262,9 +262,8 @@ def export_desired(path, res: Result, out: Path, image_topic: str = IMAGE_TOPIC)
     with bag(path) as reader:
         for i, _, img in iter_image_msgs(reader, topic_name(image_topic)):
             if i == f.index:
-                arr = image_from_buffer(img.height, img.width, img.step, img.encoding,
-                                        img.data)
-                bgr = arr[..., ::-1] if img.encoding == 'rgb8' else arr
+                arr, enc = without_alpha(*decode_image(img))
+                bgr = arr[..., ::-1] if enc == 'rgb8' else arr
                 if not cv2.imwrite(str(out), np.ascontiguousarray(bgr)):
                     raise BagError(f'cannot write {str(out)!r}')
                 return out

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sphere_servo.bag.bagio import BagError, iter_raw, on_topics, select_connections, topic_name
+from sphere_servo.bag.bagio import (BagError, image_connections, is_compressed, iter_raw,
+                                    on_topics, topic_name)
 from sphere_servo.core.central import CentralCamera
 from sphere_servo.core.measurement import Observation
 from sphere_servo.pipeline.common import Refusal, stamp_ns
@@ -138,9 +139,17 @@ class Pipeline:
         return camera_from_msg(info, self.settings.detector.intrinsics_error)
 
     def frame(self, index: int, bag_ns: int, img, camera) -> Frame:
-        """Return the :class:`Frame` of one recorded image."""
-        out = self.detector.detect(img.height, img.width, img.step, img.encoding, img.data,
-                                   camera)
+        """
+        Return the :class:`Frame` of one recorded Image or CompressedImage.
+
+        Detected as the node detects the message of its ``image_transport``: a buffer that
+        cannot be read or decoded is a rejected frame, with the detector's reason.
+        """
+        if is_compressed(img):
+            out = self.detector.detect_compressed(img.format, img.data, camera)
+        else:
+            out = self.detector.detect(img.height, img.width, img.step, img.encoding,
+                                       img.data, camera)
         return Frame(index, bag_ns, header_ns(img.header), ros_header(img.header),
                      out.measurement,
                      out.reason if out.status is DetectStatus.REJECTED else '')
@@ -196,11 +205,13 @@ def read_topic(reader, topic: str) -> list[tuple[int, object]]:
 
 
 def iter_image_msgs(reader, topic: str = IMAGE_TOPIC):
-    """Yield (index, bag ns, rosbags Image) in bag order."""
-    conns = select_connections(reader, [topic])
-    for c in conns:
-        if c.msgtype != 'sensor_msgs/msg/Image':
-            raise BagError(f'topic {c.topic} has type {c.msgtype}, not sensor_msgs/msg/Image')
+    """
+    Yield (index, bag ns, rosbags Image or CompressedImage) in bag order.
+
+    BagError when the topic is not in the bag or not of an image type
+    (:func:`~sphere_servo.bag.bagio.image_connections`).
+    """
+    conns = image_connections(reader, topic)
     for i, (conn, ts, raw) in enumerate(iter_raw(reader, conns)):
         try:
             yield i, ts, reader.deserialize(raw, conn.msgtype)

@@ -12,7 +12,13 @@ and ``ServoCore`` open loop: the twist is computed, nothing moves) and the nodes
 codecs. Parameters are the nodes' defaults, or the ``detector`` / ``features`` / ``servo``
 sections of a scenario's params files (``--config special_sphere`` for a bag of ``make
 demo``) or of one params file (``--config config/params/x.yaml``), read into the nodes'
-parameter dataclasses. The work is done by
+parameter dataclasses. The images (``--image-topic``, default ``/camera/image_raw``) are
+``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage`` (JPEG or PNG, as image_transport's
+compressed plugin records them: ``--image-topic /camera/image_raw/compressed``; detected as
+the node does with ``image_transport: compressed``). An image the detector rejects (a bad
+buffer, corrupt or truncated compressed bytes) gives an empty measurement and a warning that
+counts them and says why the first was rejected; when every one is, nothing is regenerated
+(exit 1: a compressedDepth topic, a refused camera_info). The work is done by
 :mod:`sphere_servo.bag.regenerate`, :mod:`sphere_servo.bag.desired` and
 :mod:`sphere_servo.bag.compare`.
 
@@ -76,7 +82,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help='feature sets to regenerate (default: those recorded, else s_n)')
     p.add_argument('--desired', default='auto', metavar='SPEC',
                    help='auto | stamp:SEC.NSEC | pose:X,Y,Z,ROLL,PITCH,YAW | image:FILE')
-    p.add_argument('--image-topic', default=IMAGE_TOPIC)
+    p.add_argument('--image-topic', default=IMAGE_TOPIC,
+                   help='sensor_msgs/Image or CompressedImage topic (default: %(default)s)')
     p.add_argument('--info-topic', default=INFO_TOPIC)
     p.add_argument('--check', nargs='?', type=float, const=TOL, default=None, metavar='TOL',
                    help=f'exit 1 unless every recorded features/measurement (and, with '

@@ -1,15 +1,15 @@
 """
 Regenerate a bag's pipeline streams offline: images → measurements → features (→ twists).
 
-:func:`regenerate` runs every recorded image through the nodes' cores
-(:class:`~sphere_servo.bag.offline.Pipeline`) with the desired found in the bag
-(:mod:`sphere_servo.bag.desired`). With auto/stamp one features message is made for every
-image after the taught one (as live); with pose/image for every image. Each message carries
-its image's header, and each desired the taught image's (a zero stamp for pose/image). The
-open-loop servo answers exactly the images the recorded servo answered (its ``servo/state``
-says which: it skips superseded or late ones), with the servo core's own rule for a
-repeated image. Recorded twists with a zero stamp (the servo's watchdog: they answer no
-image) are not compared.
+:func:`regenerate` runs every recorded image (``sensor_msgs/Image`` or ``CompressedImage``)
+through the nodes' cores (:class:`~sphere_servo.bag.offline.Pipeline`) with the desired
+found in the bag (:mod:`sphere_servo.bag.desired`). With auto/stamp one features message is
+made for every image after the taught one (as live); with pose/image for every image. Each
+message carries its image's header, and each desired the taught image's (a zero stamp for
+pose/image). The open-loop servo answers exactly the images the recorded servo answered
+(its ``servo/state`` says which: it skips superseded or late ones), with the servo core's
+own rule for a repeated image. Recorded twists with a zero stamp (the servo's watchdog:
+they answer no image) are not compared.
 """
 from __future__ import annotations
 

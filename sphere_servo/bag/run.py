@@ -32,8 +32,8 @@ import sys
 import numpy as np
 import pinocchio as pin
 
-from sphere_servo.bag.bagio import (bag, BagError, image_to_array, iter_raw, on_topics,
-                                    topic_name)
+from sphere_servo.bag.bagio import (bag, BagError, decode_image, image_connections, iter_raw,
+                                    on_topics, topic_name)
 from sphere_servo.bag.desired import auto_desired
 from sphere_servo.bag.offline import (desired_topic, features_topic, Frame, header_ns,
                                       IMAGE_TOPIC, INFO_TOPIC, JOINT_STATE, MEAS_TOPIC,
@@ -43,6 +43,7 @@ from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.camera_models import camera_info_reduction, reduced_camera
 from sphere_servo.core.features import FEATURE_SETS
 from sphere_servo.pipeline.arm_sim import sim_scene
+from sphere_servo.pipeline.common import stamp_text
 from sphere_servo.pipeline.config import load_node_params, section
 from sphere_servo.pipeline.detector import binning_roi
 from sphere_servo.pipeline.params import ArmSimParams
@@ -165,8 +166,10 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
 
     ``settings`` (the nodes' parameters, :func:`sphere_servo.bag.offline.load_settings`)
     give the target kind and the servo's feature set; the nodes' defaults when None.
-    Raises :class:`~sphere_servo.bag.bagio.BagError` when the bag cannot be read or has no
-    image on ``image_topic``.
+    ``image_topic`` holds ``sensor_msgs/msg/Image`` or ``CompressedImage`` (only their
+    headers are read here). Raises :class:`~sphere_servo.bag.bagio.BagError` when the bag
+    cannot be read or has no image on ``image_topic`` (not in the bag: the message names
+    ``image_topic/compressed`` if the bag has it; of another type).
     """
     settings = settings or Settings.from_params()
     image_topic = topic_name(image_topic)
@@ -176,12 +179,12 @@ def read_run(path, settings: Settings | None = None, image_topic: str = IMAGE_TO
     images: list[tuple[int, int]] = []   # (bag ns, stamp), bag order
     with bag(path) as reader:
         warnings = list(reader.warnings)  # e.g. messages it does not read
-        have = {topic_name(c.topic) for c in reader.connections}
-        if image_topic not in have:
-            raise BagError(f'{path}: no images: topic {image_topic} is not in the bag (it '
-                           f'has {", ".join(sorted(have)) or "no topics"})')
+        try:
+            image_conns = image_connections(reader, image_topic)
+        except BagError as err:
+            raise BagError(f'{path}: no images: {err}') from None
         conns = recorded_types(on_topics(reader, wanted), RUN_TYPES)
-        for conn, ts, raw in iter_raw(reader, conns + on_topics(reader, [image_topic])):
+        for conn, ts, raw in iter_raw(reader, conns + image_conns):
             topic = topic_name(conn.topic)
             if topic == image_topic:
                 images.append((ts, header_stamp(raw)))  # decode only the header
@@ -282,7 +285,10 @@ def iter_frames(run: Run):
     Yield ``(k, stamp, H×W×3 rgb8 image)`` for each frame of the run, in frame order.
 
     One pass over the bag; an image recorded out of stamp order waits until the frames
-    before it are out. An image that is not 8-bit (mono16, 32FC1) is a BagError.
+    before it are out. A CompressedImage is decoded in the colour order its format names
+    (:func:`~sphere_servo.bag.bagio.decode_image`). An image that cannot be read (a bad
+    buffer, corrupt or truncated compressed bytes, compressedDepth) or is not 8-bit
+    (mono16, 32FC1) is a BagError: the video has no frame for it.
     """
     index = {st: k for k, st in enumerate(run.frames)}
     pending: dict[int, tuple] = {}
@@ -296,11 +302,15 @@ def iter_frames(run: Run):
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception as err:  # rosbags raises several types; all mean "corrupt"
                 raise BagError(f'cannot decode an image on {conn.topic}: {err}') from None
-            img = image_to_array(msg)
+            try:
+                img, encoding = decode_image(msg)
+            except BagError as err:  # the video has no frame for it: say which image
+                raise BagError(f'the image stamped {stamp_text(run.frames[k])} s on '
+                               f'{conn.topic} cannot be read: {err}') from None
             if img.dtype != np.uint8:
-                raise BagError(f'images on {conn.topic} are {msg.encoding}: an 8-bit '
+                raise BagError(f'images on {conn.topic} are {encoding}: an 8-bit '
                                'encoding is needed')
-            if msg.encoding in ('bgr8', 'bgra8'):
+            if encoding in ('bgr8', 'bgra8'):
                 img = img[..., 2::-1]
             elif img.ndim == 2:
                 img = np.repeat(img[..., None], 3, axis=2)

@@ -2,7 +2,7 @@
 ``replay3d``: a 3-D replay page of a run, made from its recorded rosbag2.
 
     python -m sphere_servo.experiments.replay3d BAG [-o OUT.html] [--config NAME]
-                                                [--every-image]
+                                                [--every-image] [--image-topic T]
 
 Writes one self-contained HTML file (default ``replay.html`` beside the bag directory, i.e.
 ``runs/<ts>/replay.html``) that opens offline in a WebGL browser: the meshcat viewer
@@ -21,7 +21,10 @@ when the bag's measurements see a mark its target does not have (:func:`check_sc
 a target of another size or shape is not seen). The desired camera is the taught image's
 ground-truth pose, else the scenario's ``desired_cMo``.
 
-Images stamped 0 (unset) are refused: the frames could not be told apart. A recorded joint
+The frames are the images' stamps (``--image-topic``, ``sensor_msgs/msg/Image`` or
+``CompressedImage``: only their headers are read, so a camera bag recorded compressed is
+read as well: ``--image-topic /camera/image_raw/compressed``). Images stamped 0 (unset) are
+refused: the frames could not be told apart. A recorded joint
 state that no arm can be in (not one finite number per joint, or beyond the URDF's
 position limits) is left out like a lost one (no key) and the tool says how many.
 
@@ -45,7 +48,7 @@ import numpy as np
 import pinocchio as pin
 
 from sphere_servo.bag.bagio import BagError
-from sphere_servo.bag.offline import load_settings
+from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
 from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, print_warnings,
                                   read_run, Run, run_scene)
 from sphere_servo.experiments.video import check_stamps, prepare_output, unrecorded_iterations
@@ -327,6 +330,8 @@ def parse_args(argv):
                     help='scenario (or params file) the run used: arm, target, feature set')
     ap.add_argument('--every-image', action='store_true',
                     help='every image of the bag, not only the servo iterations')
+    ap.add_argument('--image-topic', default=IMAGE_TOPIC,
+                    help='sensor_msgs/Image or CompressedImage topic (default: %(default)s)')
     return ap.parse_args(argv)
 
 
@@ -334,7 +339,8 @@ def main(argv=None) -> int:
     opts = parse_args(list(sys.argv[1:] if argv is None else argv))
     from sphere_servo.pipeline.config import ConfigError
     try:
-        run = read_run(opts.bag, load_settings(opts.config), every_image=opts.every_image)
+        run = read_run(opts.bag, load_settings(opts.config), opts.image_topic,
+                       every_image=opts.every_image)
         print_warnings('replay3d', run)
         check_stamps(run)
         params = load_arm_params(opts.config)

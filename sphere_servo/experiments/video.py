@@ -3,7 +3,12 @@
 
     python -m sphere_servo.experiments.video BAG [-o OUT.mp4] [--gif [GIF]] [--config NAME]
                                              [--every-image] [--fps F]
+                                             [--image-topic T]
     make video BAG=runs/<timestamp>/bag
+
+A camera bag recorded with image_transport's compressed topic: ``--image-topic
+/camera/image_raw/compressed`` (JPEG or PNG; each frame shown in the colour order its
+format names).
 
 One frame per servo iteration (the frames of :func:`sphere_servo.bag.run.read_run`: every
 image the servo answered while enabled, by its recorded ``servo/state``; ``--every-image``:
@@ -25,12 +30,13 @@ Writes H.264 (``yuv420p``, CRF 20) with the ffmpeg that ``imageio-ffmpeg`` ships
 ``--gif`` also writes a small GIF (10 fps, half size, 128 colours; default ``servo.gif``
 beside OUT). Exit code 0 when the video was written, 1 (one line on stderr, and no video
 left behind) when it was not: the bag cannot be read, has no images, images that are not
-raw (``sensor_msgs/msg/Image``, 8-bit) or not stamped (stamp 0: they cannot be told apart),
-measurements of a mark the ``--config`` target has not, a frame rate out of
-:data:`FPS_RANGE`, or the output cannot be written. The overlays are drawn in each image's
-own pixels (the measurements'), whatever ``camera_info`` says; the frame has the first
-image's size. When the servo counted more iterations than the bag has states for (the
-recorder lost some), the tool says how many are not in the video.
+``sensor_msgs/msg/Image`` or ``CompressedImage``, not 8-bit, that cannot be decoded (a bad
+buffer, corrupt or truncated JPEG/PNG bytes, compressedDepth: the image is named), or not
+stamped (stamp 0: they cannot be told apart), measurements of a mark the ``--config``
+target has not, a frame rate out of :data:`FPS_RANGE`, or the output cannot be written. The
+overlays are drawn in each image's own pixels (the measurements'), whatever ``camera_info``
+says; the frame has the first image's size. When the servo counted more iterations than the
+bag has states for (the recorder lost some), the tool says how many are not in the video.
 """
 from __future__ import annotations
 
@@ -45,14 +51,13 @@ import time
 import cv2
 import numpy as np
 
-from sphere_servo.bag.bagio import bag, BagError, on_topics
+from sphere_servo.bag.bagio import BagError
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
 from sphere_servo.bag.run import (cli_error, iter_frames, output_path, print_warnings,
                                   read_run, Run)
 from sphere_servo.core.targets import make_target
 
 GREEN, MAGENTA, YELLOW, WHITE = (0, 230, 0), (255, 0, 255), (255, 230, 0), (255, 255, 255)
-IMAGE_TYPE = 'sensor_msgs/msg/Image'
 #: pixels (or degrees) beyond which a recorded value is not drawn (OpenCV refuses it)
 DRAW_LIMIT = 1e6
 LEGEND_H = 26  # px above the plots, for the overlay's legend
@@ -319,15 +324,6 @@ def check_stamps(run: Run) -> None:
                        'told apart')
 
 
-def check_image_type(run: Run) -> None:
-    """Refuse (BagError) a run whose image topic holds other than ``sensor_msgs/msg/Image``."""
-    with bag(run.path) as reader:
-        types = {c.msgtype for c in on_topics(reader, [run.image_topic])}
-    if types - {IMAGE_TYPE}:
-        raise BagError(f'{run.path}: {run.image_topic} holds {", ".join(sorted(types))}: the '
-                       f'video needs raw images ({IMAGE_TYPE})')
-
-
 def make_video(run: Run, out: Path, fps: float | None = None, gif: Path | None = None,
                target_kind: str = 'special', progress: bool = True) -> VideoResult:
     """Write the H.264 video (and the GIF if ``gif``) of ``run``; see the module docstring."""
@@ -431,7 +427,8 @@ def parse_args(argv):
     ap.add_argument('--every-image', action='store_true',
                     help='one frame per image of the bag, not per servo iteration')
     ap.add_argument('--fps', type=float, default=None, help='frame rate (default: camera)')
-    ap.add_argument('--image-topic', default=IMAGE_TOPIC)
+    ap.add_argument('--image-topic', default=IMAGE_TOPIC,
+                    help='sensor_msgs/Image or CompressedImage topic (default: %(default)s)')
     ap.add_argument('--quiet', action='store_true', help='no progress bar')
     return ap.parse_args(argv)
 
@@ -445,7 +442,6 @@ def main(argv=None) -> int:
         settings = load_settings(opts.config)
         run = read_run(opts.bag, settings, opts.image_topic, opts.every_image)
         print_warnings('video', run)
-        check_image_type(run)
         check_stamps(run)
         out = output_path(opts.bag, opts.output, 'servo.mp4')
         gif = None if opts.gif is None else (Path(opts.gif) if opts.gif
