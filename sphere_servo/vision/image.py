@@ -75,11 +75,19 @@ def without_alpha(img: np.ndarray, encoding: str) -> tuple[np.ndarray, str]:
     Alpha is dropped into a C-contiguous copy (``cv2.cvtColor``: 0.06 ms for 640×480, where
     numpy's strided copy takes 1.4 ms); any other encoding is returned as it is. As
     cv_bridge's ``rgba8`` → ``rgb8``: the colour channels are kept, not composited on a
-    background (a camera's alpha is opaque, or meaningless).
+    background (a camera's alpha is opaque, or meaningless). ``ValueError`` if an
+    ``rgba8``/``bgra8`` image is not a non-empty (H, W, 4) uint8 array.
     """
     three = ALPHA_ENCODINGS.get(encoding)
     if three is None:
         return img, encoding
+    # cvtColor takes an (H, W) or (H, W, 3) image too, and makes a colour image of it: an
+    # image of another shape than its encoding's is refused, not turned into another one
+    if not (isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.ndim == 3
+            and img.shape[2] == 4 and img.size):
+        raise ValueError(f'{encoding} image must be a non-empty uint8 array of shape '
+                         f'(H, W, 4), got {getattr(img, "shape", type(img).__name__)} '
+                         f'{getattr(img, "dtype", "")}')
     return cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), three
 
 
