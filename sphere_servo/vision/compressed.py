@@ -10,8 +10,10 @@ the order the producer gave the codec: ``bgr8`` unless the format names ``rgb8``
 compressed encoding. Refused (``ValueError``, saying why): an empty buffer, data that are
 no bytes, bytes OpenCV cannot decode or whose image size cannot be read, a format that is not
 a colour or grey image of 8 bits (image_transport's ``compressedDepth``, a 16-bit PNG, an
-unknown codec), and an image larger than the bound given (the camera's size; a
-decompression bomb is refused before it is decoded). A refused frame is never measured.
+unknown codec), bytes of another codec than JPEG, PNG or WebP (whichever the format names, as
+OpenCV reads what the bytes are), and an image larger than the bound given (the camera's
+size; a decompression bomb is refused before it is decoded). A refused frame is never
+measured.
 """
 from __future__ import annotations
 
@@ -26,6 +28,11 @@ from PIL import Image as PILImage
 from sphere_servo.vision.image import without_alpha
 
 CODECS = ('jpeg', 'jpg', 'png', 'webp')
+# what the bytes may be (Pillow's names; MPO is a JPEG with more pictures after the first):
+# any of the three under any codec's name, as OpenCV decodes them all. Not TIFF (OpenCV
+# applies its orientation tag even with IMREAD_UNCHANGED: a square image would be measured
+# rotated against its camera_info), nor BMP, GIF, PNM…, which no CompressedImage carries
+CONTENTS = ('JPEG', 'MPO', 'PNG', 'WEBP')
 # the most pixels decoded without a camera to bound them (8K is 33 Mpx): a 1 MB PNG of zeros
 # declares 20000×20000 px, 1.2 GB and seconds of decoding, for an image no camera sends
 MAX_PIXELS = 64_000_000
@@ -83,17 +90,18 @@ def compressed_bytes(data) -> np.ndarray:
                          f'(integers in 0..255): {exc}') from None
 
 
-def declared_size(buf: np.ndarray) -> tuple[int, int]:
+def declared_size(buf: np.ndarray) -> tuple[str, tuple[int, int]]:
     """
-    Return the (width, height) the header of an encoded image declares, without decoding it.
+    Return the codec (Pillow's name) and the (width, height) an image's header declares.
 
-    ``ValueError`` if no header is read (not an image Pillow identifies: corrupt, truncated).
+    Nothing is decoded. ``ValueError`` if no header is read (not an image Pillow identifies:
+    corrupt, truncated).
     """
     try:
         with warnings.catch_warnings():
             warnings.simplefilter('ignore', PILImage.DecompressionBombWarning)
             with PILImage.open(io.BytesIO(buf.tobytes())) as im:
-                return im.size
+                return im.format, im.size
     except PILImage.DecompressionBombError as exc:   # > 179 Mpx: Pillow's own bound
         raise ValueError(f'CompressedImage declares too large an image: {exc}; not '
                          'decoded') from None
@@ -116,7 +124,10 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
     if buf.size == 0:
         raise ValueError('CompressedImage has no data')
     # the header's size first: decoding a bomb allocates it all before anything can refuse it
-    w, h = declared_size(buf)
+    codec, (w, h) = declared_size(buf)
+    if codec not in CONTENTS:
+        raise ValueError(f'CompressedImage data are a {codec} image, not JPEG, PNG or WebP '
+                         f'(format {fmt!r})')
     if max_size is None:
         if w * h > MAX_PIXELS:
             raise ValueError(f'CompressedImage declares a {w}x{h} image: more than '
@@ -134,6 +145,9 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
     if img is None:
         raise ValueError(f'CompressedImage data ({buf.size} bytes, format {fmt!r}) is not an '
                          'image OpenCV can decode (corrupt or truncated?)')
+    if img.shape[:2] != (h, w):   # Pillow and OpenCV read other images in these bytes
+        raise ValueError(f'CompressedImage data decode to {img.shape[1]}x{img.shape[0]} '
+                         f'pixels, but their header says {w}x{h}')
     if img.dtype != np.uint8:
         raise ValueError(f'CompressedImage decodes to {img.dtype} pixels: an 8-bit image is '
                          'needed')
