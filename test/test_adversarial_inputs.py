@@ -270,6 +270,24 @@ def test_alpha_buffer_of_another_size_is_refused(scene, step, extra):
     assert refused(core.detect(480, 640, step, 'rgba8', data, cam))
 
 
+@pytest.mark.parametrize('height, step, data', [
+    (None, 1920, bytes(921600)), (float('inf'), 1920, bytes(921600)), (480.5, 1920, bytes(921600)),
+    (480, '1920', bytes(921600)), (480, 1920, None), (480, 1920, 'x' * 921600),
+    (480, 1920, object()), (480, 1920, np.zeros(921600 // 4, np.int32)),
+    (480, 1920, memoryview(np.zeros(921600 // 2, np.uint16))),
+])
+def test_raw_fields_that_are_no_image_are_refused_not_raised(scene, height, step, data):
+    """Was: TypeError or OverflowError escaped; 480.5 rows were read as 480."""
+    cam, core = scene[2], scene[3]
+    assert refused(core.detect(height, 640, step, 'rgb8', data, cam))
+
+
+def test_raw_fields_of_numpy_and_whole_float_types_are_read(scene):
+    img, _, cam, core, raw = scene
+    out = core.detect(480.0, np.int64(640), np.uint32(1920), 'rgb8', img.tobytes(), cam)
+    assert out.measurement == raw.measurement
+
+
 @pytest.mark.parametrize('shape, dtype', [((480, 2560), np.uint8), ((48, 64, 3), np.uint8),
                                           ((0, 64, 4), np.uint8), ((48, 64, 4), np.uint16),
                                           ((48, 64, 2), np.uint8)])
