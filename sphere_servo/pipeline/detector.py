@@ -251,9 +251,15 @@ class DetectorCore:
 
     def detect_compressed(self, fmt: str, data,
                           camera: CentralCamera | None) -> DetectorOutput:
-        """Detect in one compressed image (:mod:`~sphere_servo.vision.compressed`)."""
+        """
+        Detect in one compressed image (:mod:`~sphere_servo.vision.compressed`).
+
+        No image larger than ``camera``'s is decoded: it could only be refused, after seconds
+        and gigabytes for a decompression bomb.
+        """
         try:
-            img, encoding = decode_compressed(fmt, data)
+            img, encoding = decode_compressed(
+                fmt, data, None if camera is None else (camera.width, camera.height))
         except ValueError as exc:
             return DetectorOutput(DetectStatus.REJECTED, reason=str(exc))
         return self.detect_image(img, encoding, camera)

@@ -7,20 +7,35 @@ original encoding, then the one the codec was given: colour images are compresse
 by OpenCV), or a bare codec name (``"jpeg"``, ``"png"``: Foxglove, older drivers). The bytes
 are decoded by OpenCV (``cv2.imdecode``, as the plugin does); a colour image comes out in
 the order the producer gave the codec: ``bgr8`` unless the format names ``rgb8`` as the
-compressed encoding. Refused (``ValueError``, saying why): an empty buffer, bytes OpenCV
-cannot decode, a format that is not a colour or grey image of 8 bits (image_transport's
-``compressedDepth``, a 16-bit PNG, an unknown codec). A refused frame is never measured.
+compressed encoding. Refused (``ValueError``, saying why): an empty buffer, data that are
+no bytes, bytes OpenCV cannot decode or whose image size cannot be read, a format that is not
+a colour or grey image of 8 bits (image_transport's ``compressedDepth``, a 16-bit PNG, an
+unknown codec), bytes of another codec than JPEG, PNG or WebP (whichever the format names, as
+OpenCV reads what the bytes are), and an image larger than the bound given (the camera's
+size; a decompression bomb is refused before it is decoded). A refused frame is never
+measured.
 """
 from __future__ import annotations
 
 from array import array
+import io
+import warnings
 
 import cv2
 import numpy as np
+from PIL import Image as PILImage
 
 from sphere_servo.vision.image import without_alpha
 
 CODECS = ('jpeg', 'jpg', 'png', 'webp')
+# what the bytes may be (Pillow's names; MPO is a JPEG with more pictures after the first):
+# any of the three under any codec's name, as OpenCV decodes them all. Not TIFF (OpenCV
+# applies its orientation tag even with IMREAD_UNCHANGED: a square image would be measured
+# rotated against its camera_info), nor BMP, GIF, PNM…, which no CompressedImage carries
+CONTENTS = ('JPEG', 'MPO', 'PNG', 'WEBP')
+# the most pixels decoded without a camera to bound them (8K is 33 Mpx): a 1 MB PNG of zeros
+# declares 20000×20000 px, 1.2 GB and seconds of decoding, for an image no camera sends
+MAX_PIXELS = 64_000_000
 
 
 def parse_format(fmt: str) -> tuple[str, str]:
@@ -50,25 +65,89 @@ def parse_format(fmt: str) -> tuple[str, str]:
     return codec, enc
 
 
-def decode_compressed(fmt: str, data) -> tuple[np.ndarray, str]:
+def compressed_bytes(data) -> np.ndarray:
+    """
+    Return a CompressedImage's ``data`` as a 1-D uint8 array; ``ValueError`` if it is no bytes.
+
+    rclpy's ``array('B')``, rosbags' uint8 ndarray, bytes, a list of ints in 0..255. Other
+    arrays are read by value, never by their memory (an int32 array's raw bytes are no JPEG),
+    and a value that is no byte is refused, not wrapped modulo 256 (a changed JPEG byte can
+    still decode, to another image).
+    """
+    if isinstance(data, np.ndarray) and data.dtype == np.uint8:
+        return np.ascontiguousarray(data).ravel()
+    if isinstance(data, (bytes, bytearray)) or (isinstance(data, array) and data.itemsize == 1):
+        return np.frombuffer(data, np.uint8)
+    if isinstance(data, memoryview) and data.itemsize == 1:   # strided too: tobytes copies
+        return np.frombuffer(data.tobytes(), np.uint8)
+    if isinstance(data, (str, int, float)) or data is None:   # bytes(5) is 5 zeros
+        raise ValueError(f'CompressedImage data is a {type(data).__name__}, not bytes')
+    try:
+        values = np.asarray(data).ravel().tolist()
+        return np.frombuffer(bytes(values), np.uint8)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'CompressedImage data ({type(data).__name__}) are not bytes '
+                         f'(integers in 0..255): {exc}') from None
+
+
+def declared_size(buf: np.ndarray) -> tuple[str, tuple[int, int]]:
+    """
+    Return the codec (Pillow's name) and the (width, height) an image's header declares.
+
+    Nothing is decoded. ``ValueError`` if no header is read (not an image Pillow identifies:
+    corrupt, truncated).
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', PILImage.DecompressionBombWarning)
+            with PILImage.open(io.BytesIO(buf.tobytes())) as im:
+                return im.format, im.size
+    except PILImage.DecompressionBombError as exc:   # > 179 Mpx: Pillow's own bound
+        raise ValueError(f'CompressedImage declares too large an image: {exc}; not '
+                         'decoded') from None
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise ValueError(f'CompressedImage data ({buf.size} bytes): no image size can be '
+                         f'read from its header (corrupt or truncated?): {exc}') from None
+
+
+def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
+                      ) -> tuple[np.ndarray, str]:
     """
     Decode a CompressedImage's bytes; return the image and its encoding.
 
     ``(H, W, 3)`` ``bgr8``/``rgb8`` (alpha dropped), or ``(H, W)`` ``mono8``; C-contiguous.
-    Raises ``ValueError`` (module docstring: what is refused).
+    ``max_size`` = (width, height): the largest image decoded (the camera's); without it,
+    :data:`MAX_PIXELS`. Raises ``ValueError`` (module docstring: what is refused).
     """
     _, enc = parse_format(fmt)
-    if isinstance(data, np.ndarray):        # rosbags' uint8[]
-        buf = np.ascontiguousarray(data, np.uint8).ravel()
-    else:                                   # rclpy's array('B'), bytes; a list of ints
-        buf = np.frombuffer(data if isinstance(data, (bytes, bytearray, memoryview, array))
-                            else bytes(data), np.uint8)
+    buf = compressed_bytes(data)
     if buf.size == 0:
         raise ValueError('CompressedImage has no data')
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    # the header's size first: decoding a bomb allocates it all before anything can refuse it
+    codec, (w, h) = declared_size(buf)
+    if codec not in CONTENTS:
+        raise ValueError(f'CompressedImage data are a {codec} image, not JPEG, PNG or WebP '
+                         f'(format {fmt!r})')
+    if max_size is None:
+        if w * h > MAX_PIXELS:
+            raise ValueError(f'CompressedImage declares a {w}x{h} image: more than '
+                             f'{MAX_PIXELS} pixels, not decoded')
+    elif w > max_size[0] or h > max_size[1]:
+        raise ValueError(f'CompressedImage declares a {w}x{h} image, larger than the '
+                         f"camera's {max_size[0]}x{max_size[1]}: not decoded")
+    # IMREAD_UNCHANGED ignores an EXIF orientation: the stored pixels are the sensor's, those
+    # camera_info describes (IMREAD_COLOR would turn a 640x480 'orientation 6' JPEG 480x640)
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:   # OpenCV's own checks (its pixel limit): an assertion, no None
+        raise ValueError(f'CompressedImage data ({buf.size} bytes, format {fmt!r}): OpenCV '
+                         f'refuses to decode them: {exc}') from None
     if img is None:
         raise ValueError(f'CompressedImage data ({buf.size} bytes, format {fmt!r}) is not an '
                          'image OpenCV can decode (corrupt or truncated?)')
+    if img.shape[:2] != (h, w):   # Pillow and OpenCV read other images in these bytes
+        raise ValueError(f'CompressedImage data decode to {img.shape[1]}x{img.shape[0]} '
+                         f'pixels, but their header says {w}x{h}')
     if img.dtype != np.uint8:
         raise ValueError(f'CompressedImage decodes to {img.dtype} pixels: an 8-bit image is '
                          'needed')

@@ -39,13 +39,15 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     one channel, of the encoding's element type (native byte order): a view on ``data``
     for 8-bit encodings, a copy for a byte-swapped one. ``encodings`` are the accepted
     ones (default: the detector's :data:`ENCODINGS`; any of :data:`LAYOUTS`). Raises
-    ``ValueError`` on an unsupported encoding, a zero size, a ``step`` smaller than a row,
-    or ``len(data) != step · height``.
+    ``ValueError`` on an unsupported encoding, a size or step that is no whole number, a
+    zero size, a ``step`` smaller than a row, data that are no bytes, or
+    ``len(data) != step · height``.
     """
     if encoding not in encodings or encoding not in LAYOUTS:
         raise ValueError(f'unsupported image encoding {encoding!r}: use one of '
                          f'{tuple(encodings)}')
-    height, width, step = int(height), int(width), int(step)
+    height, width, step = (_whole(name, value) for name, value in
+                           (('height', height), ('width', width), ('step', step)))
     if height <= 0 or width <= 0:
         raise ValueError(f'image has zero size: {width}x{height}')
     ch, dtype = LAYOUTS[encoding]
@@ -54,10 +56,18 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     if step < row:
         raise ValueError(f'step {step} is smaller than a row of {width} {encoding} pixels '
                          f'({row} bytes)')
+    if isinstance(data, (np.ndarray, memoryview, array)) and data.itemsize != 1:
+        # its memory is not the message's bytes (an int32 array of byte values is 4× longer)
+        raise ValueError(f'image data of {data.itemsize}-byte items: bytes (uint8) needed')
     if isinstance(data, array) and data.itemsize == 1:
         data = memoryview(data)    # rclpy's uint8[]: read in place (a copy costs ~0.3 ms)
     elif not isinstance(data, (bytes, bytearray, memoryview, np.ndarray)):
-        data = bytes(data)         # e.g. a list of ints
+        try:                       # e.g. a list of ints; not a str, None, an object
+            data = bytes(data) if not isinstance(data, str) else None
+        except TypeError:
+            data = None
+        if data is None:
+            raise ValueError('image data are no bytes')
     buf = np.frombuffer(data, dtype=np.uint8)
     if buf.size != step * height:
         raise ValueError(f'image data has {buf.size} bytes, but step·height = '
@@ -68,6 +78,17 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     return rows.reshape(height, width, ch) if ch > 1 else rows.reshape(height, width)
 
 
+def _whole(name: str, value) -> int:
+    """Return ``value`` as an int, or ``ValueError`` (int() would make 2.5 rows 2, or raise)."""
+    try:
+        whole = int(value)
+    except (TypeError, ValueError, OverflowError):
+        whole = None
+    if whole is None or whole != value:
+        raise ValueError(f'image {name} = {value!r} is not a whole number')
+    return whole
+
+
 def without_alpha(img: np.ndarray, encoding: str) -> tuple[np.ndarray, str]:
     """
     Return an ``rgba8``/``bgra8`` image as ``rgb8``/``bgr8``, and its encoding.
@@ -75,11 +96,19 @@ def without_alpha(img: np.ndarray, encoding: str) -> tuple[np.ndarray, str]:
     Alpha is dropped into a C-contiguous copy (``cv2.cvtColor``: 0.06 ms for 640×480, where
     numpy's strided copy takes 1.4 ms); any other encoding is returned as it is. As
     cv_bridge's ``rgba8`` → ``rgb8``: the colour channels are kept, not composited on a
-    background (a camera's alpha is opaque, or meaningless).
+    background (a camera's alpha is opaque, or meaningless). ``ValueError`` if an
+    ``rgba8``/``bgra8`` image is not a non-empty (H, W, 4) uint8 array.
     """
     three = ALPHA_ENCODINGS.get(encoding)
     if three is None:
         return img, encoding
+    # cvtColor takes an (H, W) or (H, W, 3) image too, and makes a colour image of it: an
+    # image of another shape than its encoding's is refused, not turned into another one
+    if not (isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.ndim == 3
+            and img.shape[2] == 4 and img.size):
+        raise ValueError(f'{encoding} image must be a non-empty uint8 array of shape '
+                         f'(H, W, 4), got {getattr(img, "shape", type(img).__name__)} '
+                         f'{getattr(img, "dtype", "")}')
     return cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), three
 
 
