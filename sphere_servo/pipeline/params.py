@@ -305,6 +305,14 @@ class ServoParams(NodeParams):
                                  f'{self.lambda_0} <= {self.lambda_inf}')
 
 
+#: the ``image_reliability`` parameter of the nodes that read the camera's topics
+IMAGE_RELIABILITY = (
+    'reliable', "reliability of the camera's readers (images, camera_info): 'reliable' (the "
+    "pipeline's: lockstep needs every image) or 'best_effort' (also matches a camera that "
+    'publishes best effort, as SensorDataQoS does, which a reliable reader never matches)')
+RELIABILITIES = ('reliable', 'best_effort')
+
+
 @dataclass(frozen=True)
 class FeaturesParams(NodeParams):
     """The ``features`` node's parameters."""
@@ -327,6 +335,7 @@ class FeaturesParams(NodeParams):
     desired_file: str = param('', 'teach: the file the taught desired is kept in and '
                               "reloaded from at start (survives a restart); '': none",
                               **FIXED)
+    image_reliability: str = param(*IMAGE_RELIABILITY, choices=RELIABILITIES, **FIXED)
 
     def validate(self) -> None:
         """Check ``sets`` (known feature sets, at least one) and ``intrinsics_error``."""
@@ -353,11 +362,7 @@ class DetectorParams(NodeParams):
                                  "'compressed': sensor_msgs/CompressedImage (JPEG, PNG) on "
                                  'camera/image_raw/compressed, as image_transport names it',
                                  choices=('raw', 'compressed'), **FIXED)
-    image_reliability: str = param(
-        'reliable', "reliability of the image and camera_info readers: 'reliable' (the "
-        "pipeline's: lockstep needs every image) or 'best_effort' (also matches a camera "
-        'that publishes best effort, as SensorDataQoS does, which a reliable reader never '
-        'matches)', choices=('reliable', 'best_effort'), **FIXED)
+    image_reliability: str = param(*IMAGE_RELIABILITY, choices=RELIABILITIES, **FIXED)
 
     def validate(self) -> None:
         """Check ``intrinsics_error`` (:func:`check_intrinsics_error`)."""

@@ -33,9 +33,7 @@ the paper's calibration-error experiment is ``[0.35, 0.30, -0.25, 0.27]``.
 from __future__ import annotations
 
 import numpy as np
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import qos_policy_name_from_kind
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from sphere_servo.pipeline.common import Refusal
 from sphere_servo.pipeline.detector import binning_roi, DetectorCore, DetectStatus
@@ -45,7 +43,7 @@ from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, install_set_callback, run
-from sphere_servo.ros.qos import best_effort, SENSOR, writer
+from sphere_servo.ros.qos import camera_reader, writer
 from sphere_servo.ros.vectors import measurement_msg
 from sphere_servo.vision.draw import draw_detection
 
@@ -66,8 +64,7 @@ class DetectorNode(Node):
                                                  writer('detector/overlay'))
         self.status = StatusPublisher(self, HARDWARE_ID, self.core.status())
         self.log = ThrottledLog(self.get_logger())
-        qos = SENSOR if self.core.params.image_reliability == 'reliable' else best_effort(SENSOR)
-        events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible)
+        qos, events = camera_reader(self, self.core.params.image_reliability, self.log)
         self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, qos,
                                  event_callbacks=events)
         if self.core.params.image_transport == 'compressed':
@@ -76,14 +73,6 @@ class DetectorNode(Node):
         else:
             self.create_subscription(Image, 'camera/image_raw', self._on_image, qos,
                                      event_callbacks=events)
-
-    @guarded
-    def _incompatible(self, event) -> None:
-        policy = qos_policy_name_from_kind(event.last_policy_kind)
-        self.log.warn(f'a camera publisher offers QoS this reader cannot match ({policy}): '
-                      'nothing of it is received' + (
-                          '; a best-effort camera? set image_reliability: best_effort'
-                          if policy == 'RELIABILITY' else ''))
 
     @guarded
     def _on_info(self, msg: CameraInfo) -> None:

@@ -5,7 +5,8 @@ Subscribes
     ``detector/measurement``  sensor_msgs/JointState  (see :mod:`sphere_servo.ros.vectors`)
     ``camera/camera_info``    sensor_msgs/CameraInfo  the camera's field (for the check of the
                               measurements), and its K for ``desired_source: image``; with
-                              its binning and roi, as the detector's
+                              its binning and roi, as the detector's; best effort with
+                              ``image_reliability: best_effort`` (as the detector)
 Publishes
     ``features/<set>``          sensor_msgs/JointState  for each set in ``sets`` (default
                                 s_n): ``position`` = s, header = the image's; empty = target
@@ -44,7 +45,7 @@ from sphere_servo.ros.diagnostics import StatusPublisher
 from sphere_servo.ros.guard import guarded, guarded_service
 from sphere_servo.ros.logs import ThrottledLog
 from sphere_servo.ros.params import declare_all, run
-from sphere_servo.ros.qos import PIPELINE, SENSOR, writer
+from sphere_servo.ros.qos import camera_reader, PIPELINE, writer
 from sphere_servo.ros.vectors import (DESIRED_QOS, desired_topic, features_msg,
                                       measurement_from_msg)
 from std_msgs.msg import Header
@@ -71,7 +72,9 @@ class FeaturesNode(Node):
         self.create_subscription(JointState, 'detector/measurement', self._on_measurement,
                                  PIPELINE)
         self.create_service(Trigger, '~/teach', self._srv_teach)
-        self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, SENSOR)
+        qos, events = camera_reader(self, self.core.params.image_reliability, self.log)
+        self.create_subscription(CameraInfo, 'camera/camera_info', self._on_info, qos,
+                                 event_callbacks=events)
         if self.core.has_desired:  # a pose (no image of the run: a zero stamp) or a kept one
             self._publish_desired(Header(stamp=stamp_from_ns(self.core.desired_stamp_ns),
                                          frame_id=self.core.desired_frame_id))

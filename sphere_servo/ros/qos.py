@@ -105,3 +105,25 @@ def best_effort(profile: QoSProfile) -> QoSProfile:
     """
     return QoSProfile(history=profile.history, depth=profile.depth,
                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=profile.durability)
+
+
+def camera_reader(node, reliability: str, log):
+    """
+    Return ``(qos, event_callbacks)`` of a node's readers of the camera's topics.
+
+    ``reliability`` is the node's ``image_reliability``: 'reliable' (:data:`SENSOR`) or
+    'best_effort' (:func:`best_effort`). A camera publisher no reader of that QoS can match
+    is logged through ``log`` (a :class:`~sphere_servo.ros.logs.ThrottledLog`) with the fix,
+    instead of rclpy's bare warning.
+    """
+    from rclpy.event_handler import SubscriptionEventCallbacks
+    from rclpy.qos import qos_policy_name_from_kind
+
+    def incompatible(event) -> None:
+        policy = qos_policy_name_from_kind(event.last_policy_kind)
+        log.warn(f'a camera publisher offers QoS this reader cannot match ({policy}): '
+                 'nothing of it is received' + (
+                     '; a best-effort camera? set image_reliability: best_effort'
+                     if policy == 'RELIABILITY' else ''))
+    qos = SENSOR if reliability == 'reliable' else best_effort(SENSOR)
+    return qos, SubscriptionEventCallbacks(incompatible_qos=incompatible)
