@@ -101,7 +101,7 @@ def best_effort(profile: QoSProfile) -> QoSProfile:
     Return ``profile`` as a best-effort reader: it matches best-effort writers too.
 
     For a camera that publishes best effort (``SensorDataQoS``), which a reliable reader
-    never matches (the detector's ``image_reliability``).
+    never matches (the detector's and the features node's ``image_reliability``).
     """
     return QoSProfile(history=profile.history, depth=profile.depth,
                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=profile.durability)
