@@ -15,6 +15,8 @@ image it was taught from).
 """
 from __future__ import annotations
 
+from array import array
+
 from sensor_msgs.msg import JointState
 from sphere_servo.core.measurement import MeasurementError
 from sphere_servo.pipeline.vectors import FEATURE_NAMES, features_from_vectors, Measurement
@@ -38,7 +40,8 @@ def desired_topic(name: str) -> str:
 def measurement_msg(det: Detection | Measurement | None, hdr: Header) -> JointState:
     """Build ``detector/measurement`` of a detection or a measurement (None: empty)."""
     m = det if isinstance(det, Measurement) else Measurement.from_detection(det)
-    return JointState(header=hdr, name=list(m.names), position=list(m.values))
+    # an array('d') is taken as it is; a list is checked value by value (on the image path)
+    return JointState(header=hdr, name=list(m.names), position=array('d', m.values))
 
 
 def measurement_from_msg(msg) -> Measurement:
@@ -52,7 +55,7 @@ def features_msg(name: str, hdr: Header, s=None) -> JointState:
     if s is None:
         return msg
     msg.name = list(FEATURE_NAMES[name])
-    msg.position = [float(v) for v in s]
+    msg.position = array('d', s)
     return msg
 
 

@@ -207,11 +207,12 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     ring = T.T @ (_CIRCLE * np.array([[sin_rho], [sin_rho], [cos_rho]]))
     limb = F.T @ (_CIRCLE * np.array([[k], [k], [-rd]]))
     # the rim's points that face the camera (n·P < 0, P = s + n), the limb's in the cap
-    n = np.hstack([ring[:, s @ ring < -1.0], limb[:, m @ limb >= cos_rho]])
+    on_rim, on_limb = s @ ring < -1.0, m @ limb >= cos_rho
     conf = cov >= 0.5
-    if n.shape[1] < 3 or not conf.any():
-        return 1.0 if conf.any() else 0.0
-    c, qc = cov[conf], q[:, conf]
+    n_conf = np.count_nonzero(conf)
+    if np.count_nonzero(on_rim) + np.count_nonzero(on_limb) < 3 or not n_conf:
+        return 1.0 if n_conf else 0.0
+    c, qc = (cov, q) if n_conf == len(cov) else (cov[conf], q[:, conf])
     if at_most is not None:
         sq = s @ qc
         disc = sq * sq
@@ -222,6 +223,7 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
         out = c[(disc < 0.0) | (cos_m < cos_rho)].sum() / c.sum()
         if out <= at_most:
             return float(out)
+    n = np.hstack([ring[:, on_rim], limb[:, on_limb]])
     w = np.sort(w_sr[conf])
     scale = 1.0 / math.sqrt(0.5 * float(w[(len(w) - 1) // 2] + w[len(w) // 2]))   # median
     G = F @ (n + s[:, None])

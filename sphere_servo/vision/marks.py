@@ -350,8 +350,8 @@ class MarkFinder:
                 marks[name] = Mark.lost(name, Reason.MARK_NOT_FOUND,
                                         f'{area:.1f} px < {self.min_mark_px:.0f}', area)
                 continue
-            lo, hi = pts.min(axis=0) + (x0, y0), pts.max(axis=0) + (x0, y0)
-            if lo.min() <= 0 or hi[0] >= W - 1 or hi[1] >= H - 1:
+            # the hull's box is the pixels' box
+            if min(x0 + hx, y0 + hy) <= 0 or x0 + hx + hw >= W or y0 + hy + hh >= H:
                 # the image border hides part of the mark: its visible part's mean is not
                 # its centre, and no rim model knows where the border cuts it
                 marks[name] = Mark.lost(name, Reason.MARK_CUT_BY_BORDER, area_px=area,
