@@ -1,10 +1,11 @@
-"""The marks' labelling gives what OpenCV's connectedComponentsWithStats gives."""
+"""The marks' labelling and hull give what OpenCV gives for all of a mark's pixels."""
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
 
+from sphere_servo.vision.image import row_ends
 from sphere_servo.vision.marks import components
 
 
@@ -37,3 +38,23 @@ def test_components_are_opencvs(m):
         on = m > 0
         assert np.array_equal(got_lab[on], lab[on])
         assert np.array_equal(got_st[1:], st[1:])
+
+
+def _filled(hull: np.ndarray, shape) -> np.ndarray:
+    out = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(out, hull, 1)
+    return out
+
+
+@pytest.mark.parametrize('m', list(_masks()), ids=lambda m: f'{m.shape}:{int(m.sum())}')
+def test_the_hull_of_row_ends_is_the_pixels_hull(m):
+    # the pixels as the marks find them (cv2.findNonZero: row-major)
+    pts = cv2.findNonZero(m).reshape(-1, 2)
+    ends = row_ends(pts)
+    assert len(ends) <= 2 * len(np.unique(pts[:, 1]))
+    whole, fast = cv2.convexHull(pts), cv2.convexHull(ends)
+    assert {tuple(p) for p in whole.reshape(-1, 2).tolist()} == \
+        {tuple(p) for p in fast.reshape(-1, 2).tolist()}
+    assert cv2.boundingRect(fast) == cv2.boundingRect(pts)
+    shape = (m.shape[0] + 2, m.shape[1] + 2)
+    assert np.array_equal(_filled(fast, shape), _filled(whole, shape))

@@ -212,17 +212,21 @@ def outside_share(sphere: SphereMeasurement, ray: np.ndarray, rho: float, q: np.
     n_conf = np.count_nonzero(conf)
     if np.count_nonzero(on_rim) + np.count_nonzero(on_limb) < 3 or not n_conf:
         return 1.0 if n_conf else 0.0
-    c, qc = (cov, q) if n_conf == len(cov) else (cov[conf], q[:, conf])
     if at_most is not None:
-        sq = s @ qc
+        # over every pixel, then the confident ones' share: cheaper than taking their columns
+        sq = s @ q
         disc = sq * sq
         disc += 1.0 - float(s @ s)
         t = sq - np.sqrt(np.maximum(disc, 0.0))       # the near hit ρ (units of r)
-        cos_m = t * (m @ qc)
+        cos_m = t * (m @ q)
         cos_m -= float(s @ m)                          # n·m, n = ρq − s
-        out = c[(disc < 0.0) | (cos_m < cos_rho)].sum() / c.sum()
+        miss = disc < 0.0
+        miss |= cos_m < cos_rho
+        miss &= conf
+        out = cov[miss].sum() / cov[conf].sum()
         if out <= at_most:
             return float(out)
+    c, qc = cov[conf], q[:, conf]
     n = np.hstack([ring[:, on_rim], limb[:, on_limb]])
     w = np.sort(w_sr[conf])
     scale = 1.0 / math.sqrt(0.5 * float(w[(len(w) - 1) // 2] + w[len(w) // 2]))   # median

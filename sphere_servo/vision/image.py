@@ -173,3 +173,14 @@ def components(m: np.ndarray, n: int) -> tuple[int, np.ndarray | None, np.ndarra
         return 2, None, None
     nlab, lab, st, _ = cv2.connectedComponentsWithStats((m > 0).view(np.uint8), connectivity=8)
     return nlab, lab, st
+
+
+def row_ends(pts: np.ndarray) -> np.ndarray:
+    """
+    Return the first and the last of each row of the (N, 2) ``(x, y)`` pixels, row-major.
+
+    Their convex hull is the pixels' (the same vertices), for a fraction of the points.
+    """
+    y = pts[:, 1]
+    cut = np.flatnonzero(y[1:] != y[:-1])
+    return pts[np.concatenate(((0,), cut + 1, cut, (len(y) - 1,)))]

@@ -29,7 +29,7 @@ from sphere_servo.core.types import Image, Vec3
 from sphere_servo.vision.caps import (CapCentre, match_centroid, outside_share,
                                       predicted_direction, tangent_basis, visible_solid_angle)
 from sphere_servo.vision.cone import limb_distance
-from sphere_servo.vision.image import chroma_test, components, to_chroma
+from sphere_servo.vision.image import chroma_test, components, row_ends, to_chroma
 from sphere_servo.vision.reasons import NotDetected, Reason
 from sphere_servo.vision.silhouette import Silhouette
 from sphere_servo.vision.swap import core_colour, SwapCheck
@@ -283,7 +283,7 @@ class MarkFinder:
             # a painted cap is convex in the image: fill its convex hull, so that a thin
             # occluder (the CC stick lies across P1's cap) does not bias the centre; its
             # box in roi coordinates, grown by 2 px for the anti-aliased rim
-            hull = cv2.convexHull(pts)
+            hull = cv2.convexHull(row_ends(pts))
             hx, hy, hw, hh = cv2.boundingRect(hull)
             gx0, gy0 = max(0, hx - 2), max(0, hy - 2)
             gx1 = min(roi.shape[1], hx + hw + 2)

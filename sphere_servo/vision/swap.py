@@ -69,7 +69,7 @@ def body_colour(rgb: Image, ellipse) -> np.ndarray | None:
     ca, sa = math.cos(ang), math.sin(ang)
     uv = np.array([[a0 * s0 * ca, -a1 * s1 * sa], [a0 * s0 * sa, a1 * s1 * ca]]) @ _DISC
     uv += ((cx,), (cy,))
-    np.clip(uv, 0.0, ((W - 1,), (H - 1,)), out=uv)
+    np.minimum(np.maximum(uv, 0.0, out=uv), ((W - 1,), (H - 1,)), out=uv)  # np.clip: slower
     u, v = uv.astype(np.intp)
     pix = rgb[v, u].astype(np.int16)
     hi, lo = _span(pix)
