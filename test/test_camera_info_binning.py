@@ -22,11 +22,12 @@ import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
-                                             camera_info_reduction, FisheyeCamera)
-from sphere_servo.core.central import CameraError
+                                             camera_info_reduction, FisheyeCamera,
+                                             UnifiedCamera)
+from sphere_servo.core.central import CameraError, FOCAL_RATIO_MAX, FOCAL_RATIO_MIN
 from sphere_servo.core.measurement import PINHOLE_FIELD
 from sphere_servo.core.targets import special_sphere
-from sphere_servo.core.validation import Bound
+from sphere_servo.core.validation import Bound, Violation
 from sphere_servo.pipeline.common import Refusal
 from sphere_servo.pipeline.detector import camera_from_info, detector_camera, DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore
@@ -200,6 +201,64 @@ def test_refusals_are_typed():
     with pytest.raises(CameraError) as err:
         camera_info_reduction(640, 480, roi=(0, 0, 0, 1))
     assert err.value.violation.bound is Bound.GEOMETRY
+
+
+# --- a reduced camera past a bound of every camera: named with its binning and roi -------------
+def _reduced_refusal(info: dict, **kw) -> Violation:
+    with pytest.raises(CameraError) as err:
+        camera_from_camera_info_fields(**info, **kw)
+    out = camera_from_info(info['width'], info['height'], info['k'], info['d'],
+                           distortion_model=info['distortion_model'], **kw)
+    assert isinstance(out, Refusal) and out.reason == str(err.value)  # the nodes say the same
+    return err.value.violation
+
+
+@pytest.mark.parametrize('f', [300.0, 610.0, 1200.0])
+@pytest.mark.parametrize('axis', ['x', 'y'])
+def test_a_binning_that_leaves_a_focal_length_no_camera_has_is_named(axis, f):
+    """
+    No limit of binning's own: the focal-length bound of every camera decides, and names it.
+
+    Binning one axis divides its focal length and keeps the other side, so the bound
+    (``FOCAL_RATIO_MIN`` × the reduced image's larger side) moves with ``f``: the last
+    binning it allows is read, the next refused naming that binning, the calibrated focal
+    length it divided and the image it leaves.
+    """
+    info = CameraIntrinsics(px=f, py=f).to_camera_info_fields()
+    field, n = f'binning_{axis}', 640 if axis == 'x' else 480
+
+    def size(b):
+        return (640 // b, 480) if axis == 'x' else (640, 480 // b)
+    last = max(b for b in range(1, n + 1) if f / b >= FOCAL_RATIO_MIN * max(size(b)))
+    assert 1 < last < n
+    cam = camera_from_info(*ARGS[:2], info['k'], info['d'], **{field: last})
+    assert (cam.width, cam.height) == size(last)
+    assert (cam.px if axis == 'x' else cam.py) == f / last
+    v = _reduced_refusal(info, **{field: last + 1})
+    assert v.bound is Bound.RANGE and v.value == f / (last + 1)
+    assert v.quantity == f'p{axis} = f{axis} / {field} = {f!r} / {last + 1}', v
+    w, h = size(last + 1)
+    assert f'{field} = {last + 1}' in v.limit and f'leave a {w}x{h} image' in v.limit, v
+
+
+def test_an_roi_that_leaves_a_focal_length_no_camera_has_is_named():
+    """A crop keeps the focal length and shrinks the image: the upper bound, by the roi."""
+    f = FOCAL_RATIO_MAX * 600  # a telescope: allowed for the 640 px image and a 600 px crop
+    info = CameraIntrinsics(px=f, py=f).to_camera_info_fields()
+    assert camera_from_info(*ARGS[:2], info['k'], info['d'], roi=(0, 0, 600, 1)).px == f
+    v = _reduced_refusal(info, roi=(0, 0, 599, 1))
+    assert (v.bound, v.value) == (Bound.RANGE, f) and v.quantity.startswith('px = fx'), v
+    assert '(0, 0, 599, 1)' in v.limit and 'leave a 599x1 image' in v.limit, v
+
+
+def test_a_crop_that_no_ray_reaches_is_named_with_its_roi():
+    """A catadioptric image ends at its limit circle: a crop of the corner sees nothing."""
+    info = UnifiedCamera(xi=2.0).to_camera_info_fields()
+    centre = camera_from_info(*ARGS[:2], info['k'], info['d'], distortion_model='unified',
+                              roi=(310, 230, 20, 20))
+    assert isinstance(centre, UnifiedCamera) and centre.width == 20
+    v = _reduced_refusal(info, roi=(0, 0, 20, 20))
+    assert v.bound is Bound.FIELD and '(0, 0, 20, 20)' in v.limit, v
 
 
 # --- the principal point, the intrinsics error, the cache, the size mismatch -------------------

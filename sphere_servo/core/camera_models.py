@@ -40,7 +40,7 @@ from sphere_servo.core.camera import CameraIntrinsics
 from sphere_servo.core.central import CameraError, CentralCamera, image_side, Lifted, Reduction
 from sphere_servo.core.distortion import (det2, first_fold, odd_poly, radtan, solve_odd_poly,
                                           undistort_radtan)
-from sphere_servo.core.validation import Bound, check_whole, refuse
+from sphere_servo.core.validation import Bound, check_whole, refuse, Violation
 
 
 def camera_info_fields(cam, model: str, d) -> dict:
@@ -397,14 +397,39 @@ def reduced_camera(camera, reduction: Reduction | None):
 
     The same model, distortion and field, with the K of
     :class:`~sphere_servo.core.central.Reduction` and its size; ``camera`` itself when
-    ``reduction`` is None. CameraError if no camera has the reduced intrinsics.
+    ``reduction`` is None. CameraError if no camera has the reduced intrinsics, by the
+    bounds every camera has (``CentralCamera._check_intrinsics``, the model's field), whose
+    violation then names the binning that divided a refused focal length, and the binning
+    and roi that made the reduced image (a 1×96 binning of a 640×480 camera with fy = 610
+    leaves a 640×5 image whose fy = 610/96 = 6.35 px is under 0.01 × 640: refused naming
+    binning_y, not a focal length the camera_info never had).
     """
     if reduction is None:
         return camera
     (x, y, _, _), bx, by = reduction.roi, reduction.binning_x, reduction.binning_y
     w, h = reduction.size
-    return replace(camera, px=camera.px / bx, py=camera.py / by, u0=(camera.u0 - x) / bx,
-                   v0=(camera.v0 - y) / by, width=w, height=h, reduction=reduction)
+    try:
+        return replace(camera, px=camera.px / bx, py=camera.py / by, u0=(camera.u0 - x) / bx,
+                       v0=(camera.v0 - y) / by, width=w, height=h, reduction=reduction)
+    except CameraError as exc:
+        if exc.violation is None:
+            raise
+        raise CameraError(_reduced_violation(exc.violation, camera, reduction)) from None
+
+
+#: a focal length of the reduced camera → its CameraInfo name and the binning dividing it
+_BINNED = {'px': ('fx', 'binning_x'), 'py': ('fy', 'binning_y')}
+
+
+def _reduced_violation(v: Violation, camera, red: Reduction) -> Violation:
+    """Return ``v`` (of the reduced camera) naming the binning and roi that made its value."""
+    quantity = v.quantity
+    if quantity in _BINNED:  # e.g. 'py = fy / binning_y = 610.0 / 96'
+        f, binning = _BINNED[quantity]
+        quantity = (f'{quantity} = {f} / {binning} = {getattr(camera, quantity)!r} / '
+                    f'{getattr(red, binning)}')
+    return Violation(quantity, v.value, v.bound, f"{v.limit}; the camera_info's {red} leave a "
+                     f'{red.size[0]}x{red.size[1]} image')
 
 
 def check_camera_for_image(camera, width: int, height: int, applies_distortion: bool):
