@@ -13,6 +13,7 @@ refusal at and past its bound.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from camera_cases import field_rays, MODELS
 import cv2
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
+from sphere_servo.core.camera_models import (calibrated_camera, camera_from_camera_info_fields,
                                              camera_info_reduction, FisheyeCamera,
                                              UnifiedCamera)
 from sphere_servo.core.central import CameraError, FOCAL_RATIO_MAX, FOCAL_RATIO_MIN
@@ -62,6 +63,9 @@ def test_the_reduced_camera_by_hand(reduce, want):
     assert (cam.width, cam.height) == want[:2]
     assert (cam.px, cam.py, cam.u0, cam.v0) == pytest.approx(want[2:], rel=1e-12)
     assert cam.dist == CAM.dist and cam.reduction is not None
+    full = calibrated_camera(cam)  # and back
+    assert (full.width, full.height, full.reduction) == (640, 480, None)
+    assert (full.px, full.py, full.u0, full.v0) == pytest.approx((600, 610, 320, 240), rel=1e-12)
     # the factory gives the same camera; its CameraInfo fields are those of a plain camera
     # (whose principal point must then be near its own image: the corner crop's is not)
     again = camera_from_camera_info_fields(**INFO, binning_x=bx, binning_y=by, roi=roi)
@@ -303,6 +307,36 @@ def test_a_size_mismatch_names_the_binning_and_roi():
     with pytest.raises(CameraError) as err:  # no binning, no roi: nothing about them
         detector_camera(CAM, 320, 240)
     assert 'binning' not in str(err.value) and 'roi' not in str(err.value)
+
+
+def test_replay3d_takes_a_reduced_stream_as_its_calibrated_camera():
+    """The simulator's camera is the calibrated one: its crop_decimate stream is that run's."""
+    from types import SimpleNamespace
+
+    from sphere_servo.bag.bagio import BagError
+    from sphere_servo.bag.run import Run
+    from sphere_servo.experiments.replay3d import check_scenario
+
+    def scene(cam):
+        return SimpleNamespace(camera=cam, target=SimpleNamespace(marks=('P1', 'P2')))
+    roi = (40, 20, 600, 400)
+    half = camera_from_info(*ARGS, binning_x=2, binning_y=2, roi=roi)
+    for rec in (CAM, half, camera_from_info(*ARGS, binning_x=3, binning_y=1)):
+        check_scenario(Run(Path('bag'), [], camera=rec), scene(CAM))
+    check_scenario(Run(Path('bag'), [], camera=half), scene(half))  # its images' camera
+    other = [620.0, 0.0, 320.0, 0.0, 610.0, 240.0, 0.0, 0.0, 1.0]
+    for rec, named in ((camera_from_info(640, 480, other, INFO['d'], binning_x=2, binning_y=2,
+                                         roi=roi), True),
+                       (camera_from_info(640, 480, other, INFO['d']), False)):
+        with pytest.raises(BagError) as err:
+            check_scenario(Run(Path('bag'), [], camera=rec), scene(CAM))
+        text = str(err.value)
+        assert f'({rec.width}x{rec.height}, px={rec.px:g}' in text and '640x480, px=600' in text
+        if named:
+            assert 'binning_x = 2, binning_y = 2' in text and str(roi) in text
+            assert 'px=620 there' in text, text
+        else:
+            assert 'binning' not in text and 'roi' not in text, text
 
 
 # --- the cores ----------------------------------------------------------------------------------

@@ -432,6 +432,21 @@ def _reduced_violation(v: Violation, camera, red: Reduction) -> Violation:
                      f'{red.size[0]}x{red.size[1]} image')
 
 
+def calibrated_camera(camera):
+    """
+    Return the camera of the calibrated image that ``camera``'s reduction was made from.
+
+    The inverse of :func:`reduced_camera` (``camera`` itself when it has no reduction): the
+    camera a CameraInfo's own fields describe, before its binning and roi.
+    """
+    red = camera.reduction
+    if red is None:
+        return camera
+    u0, v0 = red.to_full(camera.u0, camera.v0)
+    return replace(camera, px=camera.px * red.binning_x, py=camera.py * red.binning_y, u0=u0,
+                   v0=v0, width=red.full_width, height=red.full_height, reduction=None)
+
+
 def check_camera_for_image(camera, width: int, height: int, applies_distortion: bool):
     """
     Return ``camera`` if it is the camera of an image of ``width × height`` pixels, else refuse.
