@@ -13,6 +13,7 @@ refusal at and past its bound.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from camera_cases import field_rays, MODELS
 import cv2
@@ -21,12 +22,13 @@ import numpy as np
 import pytest
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.camera_models import (camera_from_camera_info_fields,
-                                             camera_info_reduction, FisheyeCamera)
-from sphere_servo.core.central import CameraError
+from sphere_servo.core.camera_models import (calibrated_camera, camera_from_camera_info_fields,
+                                             camera_info_reduction, FisheyeCamera,
+                                             UnifiedCamera)
+from sphere_servo.core.central import CameraError, FOCAL_RATIO_MAX, FOCAL_RATIO_MIN
 from sphere_servo.core.measurement import PINHOLE_FIELD
 from sphere_servo.core.targets import special_sphere
-from sphere_servo.core.validation import Bound
+from sphere_servo.core.validation import Bound, Violation
 from sphere_servo.pipeline.common import Refusal
 from sphere_servo.pipeline.detector import camera_from_info, detector_camera, DetectorCore
 from sphere_servo.pipeline.features import FeaturesCore
@@ -61,6 +63,9 @@ def test_the_reduced_camera_by_hand(reduce, want):
     assert (cam.width, cam.height) == want[:2]
     assert (cam.px, cam.py, cam.u0, cam.v0) == pytest.approx(want[2:], rel=1e-12)
     assert cam.dist == CAM.dist and cam.reduction is not None
+    full = calibrated_camera(cam)  # and back
+    assert (full.width, full.height, full.reduction) == (640, 480, None)
+    assert (full.px, full.py, full.u0, full.v0) == pytest.approx((600, 610, 320, 240), rel=1e-12)
     # the factory gives the same camera; its CameraInfo fields are those of a plain camera
     # (whose principal point must then be near its own image: the corner crop's is not)
     again = camera_from_camera_info_fields(**INFO, binning_x=bx, binning_y=by, roi=roi)
@@ -138,12 +143,16 @@ def refusal(**kw) -> str:
 def test_binning_at_and_past_its_bounds(field, size):
     assert camera_from_info(*ARGS, binning_x=640, binning_y=480).reduction.size == (1, 1)
     assert camera_from_info(*ARGS, **{field: 2.0}).reduction.size != (640, 480)  # whole
-    for value, bound in ((size + 1, f'≤ {"width" if field == "binning_x" else "height"}'),
-                         (-1, 'whole number ≥ 0'), (2.5, 'whole number ≥ 0'),
-                         (1e12, f'= {size}'), (math.nan, 'finite'), ('2x', 'a number'),
-                         (None, 'a number')):
-        reason = refusal(**{field: value})
-        assert f'CameraInfo.{field} = ' in reason and bound in reason, reason
+    for value, bound in ((size + 1, Bound.RANGE), (-1, Bound.RANGE), (2.5, Bound.RANGE),
+                         (1e12, Bound.RANGE), (math.nan, Bound.FINITE), ('2x', Bound.SHAPE),
+                         ('2', Bound.SHAPE), (None, Bound.SHAPE), (True, Bound.SHAPE),
+                         (np.True_, Bound.SHAPE)):
+        with pytest.raises(CameraError) as err:
+            camera_info_reduction(640, 480, **{field: value})
+        v = err.value.violation
+        assert (v.quantity, v.bound) == (f'CameraInfo.{field}', bound), v
+        assert v.value is value or v.value == value, v
+        assert refusal(**{field: value}) == str(v)  # the node's refusal names field and value
 
 
 def test_an_roi_at_and_past_the_image():
@@ -198,6 +207,64 @@ def test_refusals_are_typed():
     assert err.value.violation.bound is Bound.GEOMETRY
 
 
+# --- a reduced camera past a bound of every camera: named with its binning and roi -------------
+def _reduced_refusal(info: dict, **kw) -> Violation:
+    with pytest.raises(CameraError) as err:
+        camera_from_camera_info_fields(**info, **kw)
+    out = camera_from_info(info['width'], info['height'], info['k'], info['d'],
+                           distortion_model=info['distortion_model'], **kw)
+    assert isinstance(out, Refusal) and out.reason == str(err.value)  # the nodes say the same
+    return err.value.violation
+
+
+@pytest.mark.parametrize('f', [300.0, 610.0, 1200.0])
+@pytest.mark.parametrize('axis', ['x', 'y'])
+def test_a_binning_that_leaves_a_focal_length_no_camera_has_is_named(axis, f):
+    """
+    No limit of binning's own: the focal-length bound of every camera decides, and names it.
+
+    Binning one axis divides its focal length and keeps the other side, so the bound
+    (``FOCAL_RATIO_MIN`` × the reduced image's larger side) moves with ``f``: the last
+    binning it allows is read, the next refused naming that binning, the calibrated focal
+    length it divided and the image it leaves.
+    """
+    info = CameraIntrinsics(px=f, py=f).to_camera_info_fields()
+    field, n = f'binning_{axis}', 640 if axis == 'x' else 480
+
+    def size(b):
+        return (640 // b, 480) if axis == 'x' else (640, 480 // b)
+    last = max(b for b in range(1, n + 1) if f / b >= FOCAL_RATIO_MIN * max(size(b)))
+    assert 1 < last < n
+    cam = camera_from_info(*ARGS[:2], info['k'], info['d'], **{field: last})
+    assert (cam.width, cam.height) == size(last)
+    assert (cam.px if axis == 'x' else cam.py) == f / last
+    v = _reduced_refusal(info, **{field: last + 1})
+    assert v.bound is Bound.RANGE and v.value == f / (last + 1)
+    assert v.quantity == f'p{axis} = f{axis} / {field} = {f!r} / {last + 1}', v
+    w, h = size(last + 1)
+    assert f'{field} = {last + 1}' in v.limit and f'leave a {w}x{h} image' in v.limit, v
+
+
+def test_an_roi_that_leaves_a_focal_length_no_camera_has_is_named():
+    """A crop keeps the focal length and shrinks the image: the upper bound, by the roi."""
+    f = FOCAL_RATIO_MAX * 600  # a telescope: allowed for the 640 px image and a 600 px crop
+    info = CameraIntrinsics(px=f, py=f).to_camera_info_fields()
+    assert camera_from_info(*ARGS[:2], info['k'], info['d'], roi=(0, 0, 600, 1)).px == f
+    v = _reduced_refusal(info, roi=(0, 0, 599, 1))
+    assert (v.bound, v.value) == (Bound.RANGE, f) and v.quantity.startswith('px = fx'), v
+    assert '(0, 0, 599, 1)' in v.limit and 'leave a 599x1 image' in v.limit, v
+
+
+def test_a_crop_that_no_ray_reaches_is_named_with_its_roi():
+    """A catadioptric image ends at its limit circle: a crop of the corner sees nothing."""
+    info = UnifiedCamera(xi=2.0).to_camera_info_fields()
+    centre = camera_from_info(*ARGS[:2], info['k'], info['d'], distortion_model='unified',
+                              roi=(310, 230, 20, 20))
+    assert isinstance(centre, UnifiedCamera) and centre.width == 20
+    v = _reduced_refusal(info, roi=(0, 0, 20, 20))
+    assert v.bound is Bound.FIELD and '(0, 0, 20, 20)' in v.limit, v
+
+
 # --- the principal point, the intrinsics error, the cache, the size mismatch -------------------
 def test_a_crop_far_from_the_principal_point_is_no_corrupt_k():
     """The principal point is bounded by the calibrated image, not by the crop."""
@@ -240,6 +307,36 @@ def test_a_size_mismatch_names_the_binning_and_roi():
     with pytest.raises(CameraError) as err:  # no binning, no roi: nothing about them
         detector_camera(CAM, 320, 240)
     assert 'binning' not in str(err.value) and 'roi' not in str(err.value)
+
+
+def test_replay3d_takes_a_reduced_stream_as_its_calibrated_camera():
+    """The simulator's camera is the calibrated one: its crop_decimate stream is that run's."""
+    from types import SimpleNamespace
+
+    from sphere_servo.bag.bagio import BagError
+    from sphere_servo.bag.run import Run
+    from sphere_servo.experiments.replay3d import check_scenario
+
+    def scene(cam):
+        return SimpleNamespace(camera=cam, target=SimpleNamespace(marks=('P1', 'P2')))
+    roi = (40, 20, 600, 400)
+    half = camera_from_info(*ARGS, binning_x=2, binning_y=2, roi=roi)
+    for rec in (CAM, half, camera_from_info(*ARGS, binning_x=3, binning_y=1)):
+        check_scenario(Run(Path('bag'), [], camera=rec), scene(CAM))
+    check_scenario(Run(Path('bag'), [], camera=half), scene(half))  # its images' camera
+    other = [620.0, 0.0, 320.0, 0.0, 610.0, 240.0, 0.0, 0.0, 1.0]
+    for rec, named in ((camera_from_info(640, 480, other, INFO['d'], binning_x=2, binning_y=2,
+                                         roi=roi), True),
+                       (camera_from_info(640, 480, other, INFO['d']), False)):
+        with pytest.raises(BagError) as err:
+            check_scenario(Run(Path('bag'), [], camera=rec), scene(CAM))
+        text = str(err.value)
+        assert f'({rec.width}x{rec.height}, px={rec.px:g}' in text and '640x480, px=600' in text
+        if named:
+            assert 'binning_x = 2, binning_y = 2' in text and str(roi) in text
+            assert 'px=620 there' in text, text
+        else:
+            assert 'binning' not in text and 'roi' not in text, text
 
 
 # --- the cores ----------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from sphere_servo.core.central import CameraError, CentralCamera, Lifted
+from sphere_servo.core.central import CameraError, CentralCamera, image_side, Lifted
 from sphere_servo.core.distortion import det2, first_fold, odd_poly, radtan, undistort_radtan
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2
@@ -135,8 +135,8 @@ class CameraIntrinsics(CentralCamera):
         dist = tuple(float(v) for v in (d if d is not None and len(d) else [0.0] * 5))
         if len(dist) < 5:
             dist = dist + (0.0,) * (5 - len(dist))
-        return cls(px=k[0], py=k[4], u0=k[2], v0=k[5], width=int(width), height=int(height),
-                   dist=dist[:5])
+        return cls(px=k[0], py=k[4], u0=k[2], v0=k[5], width=image_side('width', width),
+                   height=image_side('height', height), dist=dist[:5])
 
     # --- the central-camera interface (core/central.py): lift, project, Jacobians, field --
     _NO_DISTORTION = (0.0,) * 5

@@ -37,11 +37,10 @@ import math
 import numpy as np
 
 from sphere_servo.core.camera import CameraIntrinsics
-from sphere_servo.core.central import (CameraError, CentralCamera, Lifted,
-                                       MAX_IMAGE_SIDE, Reduction)
+from sphere_servo.core.central import CameraError, CentralCamera, image_side, Lifted, Reduction
 from sphere_servo.core.distortion import (det2, first_fold, odd_poly, radtan, solve_odd_poly,
                                           undistort_radtan)
-from sphere_servo.core.validation import Bound, check_number, refuse
+from sphere_servo.core.validation import Bound, check_whole, refuse, Violation
 
 
 def camera_info_fields(cam, model: str, d) -> dict:
@@ -328,12 +327,8 @@ def _calibrated_camera(width, height, k, d, distortion_model):
     if len(d) != n:
         refuse(CameraError, 'CameraInfo.d', d, Bound.SHAPE,
                f'distortion_model {model!r} needs {n} coefficients in d')
-    # a fractional size is passed on as it is, for the model's check to refuse
-    width, height = (int(n) if n == int(n) else n for n in
-                     (check_number(CameraError, 'width', width),
-                      check_number(CameraError, 'height', height)))
     kw = {'px': float(k[0]), 'py': float(k[4]), 'u0': float(k[2]), 'v0': float(k[5]),
-          'width': width, 'height': height}
+          'width': image_side('width', width), 'height': image_side('height', height)}
     if model == 'equidistant':
         return FisheyeCamera(**kw, dist=tuple(d))
     if model == 'unified':
@@ -341,15 +336,6 @@ def _calibrated_camera(width, height, k, d, distortion_model):
     cam = CameraIntrinsics(**kw, dist=tuple(d))
     cam._check_unfolded()
     return cam
-
-
-def _whole(quantity: str, value, lo: int, hi: int | None = None, limit: str = '') -> int:
-    """Return ``value`` as an int in ``[lo, hi]``, or refuse it (CameraError naming it)."""
-    x = check_number(CameraError, quantity, value)
-    if not (x == int(x) and lo <= x and (hi is None or x <= hi)):
-        refuse(CameraError, quantity, value, Bound.RANGE,
-               limit or f'a whole number ≥ {lo}' + ('' if hi is None else f' and ≤ {hi}'))
-    return int(x)
 
 
 def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
@@ -367,8 +353,8 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
     image, an roi of zero width but not zero height (or the reverse), an roi that leaves the
     calibrated ``width × height`` image, and a published image of no pixel.
     """
-    bx = _whole('CameraInfo.binning_x', binning_x, 0) or 1
-    by = _whole('CameraInfo.binning_y', binning_y, 0) or 1
+    bx = check_whole(CameraError, 'CameraInfo.binning_x', binning_x, 0) or 1
+    by = check_whole(CameraError, 'CameraInfo.binning_y', binning_y, 0) or 1
     if roi is None:
         roi = (0, 0, 0, 0)
     try:
@@ -378,12 +364,11 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
     if values is None or len(values) != 4:
         refuse(CameraError, 'CameraInfo.roi', roi, Bound.SHAPE,
                '4 whole numbers (x_offset, y_offset, width, height)')
-    roi = tuple(_whole(f'CameraInfo.roi.{n}', v, 0)
+    roi = tuple(check_whole(CameraError, f'CameraInfo.roi.{n}', v, 0)
                 for n, v in zip(('x_offset', 'y_offset', 'width', 'height'), values))
     if bx == by == 1 and roi[2] == roi[3] == 0:
         return None
-    W = _whole('width', width, 1, MAX_IMAGE_SIDE)
-    H = _whole('height', height, 1, MAX_IMAGE_SIDE)
+    W, H = image_side('width', width), image_side('height', height)
     x, y, w, h = roi
     if w == h == 0:  # RegionOfInterest.msg: a size of (0, 0) is the full resolution
         x, y, w, h = roi = (0, 0, W, H)
@@ -396,8 +381,8 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
             refuse(CameraError, f'CameraInfo.roi.{a}_offset + roi.{n}',
                    f'{off} + {size} = {off + size}', Bound.RANGE,
                    f'≤ {n} = {full}: the roi must lie inside the calibrated {W}x{H} image')
-    _whole('CameraInfo.binning_x', bx, 1, W, f'≤ width = {W}')
-    _whole('CameraInfo.binning_y', by, 1, H, f'≤ height = {H}')
+    check_whole(CameraError, 'CameraInfo.binning_x', bx, 1, W, f'≤ width = {W}')
+    check_whole(CameraError, 'CameraInfo.binning_y', by, 1, H, f'≤ height = {H}')
     red = Reduction(W, H, bx, by, roi)
     if 0 in red.size:
         refuse(CameraError, 'reduced image size', f'{red.size[0]}x{red.size[1]}', Bound.RANGE,
@@ -412,14 +397,54 @@ def reduced_camera(camera, reduction: Reduction | None):
 
     The same model, distortion and field, with the K of
     :class:`~sphere_servo.core.central.Reduction` and its size; ``camera`` itself when
-    ``reduction`` is None. CameraError if no camera has the reduced intrinsics.
+    ``reduction`` is None. CameraError if no camera has the reduced intrinsics, by the
+    bounds every camera has (``CentralCamera._check_intrinsics``, the model's field), whose
+    violation then names the binning that divided a refused focal length, and the binning
+    and roi that made the reduced image (a 1×96 binning of a 640×480 camera with fy = 610
+    leaves a 640×5 image whose fy = 610/96 = 6.35 px is under 0.01 × 640: refused naming
+    binning_y, not a focal length the camera_info never had).
     """
     if reduction is None:
         return camera
     (x, y, _, _), bx, by = reduction.roi, reduction.binning_x, reduction.binning_y
     w, h = reduction.size
-    return replace(camera, px=camera.px / bx, py=camera.py / by, u0=(camera.u0 - x) / bx,
-                   v0=(camera.v0 - y) / by, width=w, height=h, reduction=reduction)
+    try:
+        return replace(camera, px=camera.px / bx, py=camera.py / by, u0=(camera.u0 - x) / bx,
+                       v0=(camera.v0 - y) / by, width=w, height=h, reduction=reduction)
+    except CameraError as exc:
+        if exc.violation is None:
+            raise
+        raise CameraError(_reduced_violation(exc.violation, camera, reduction)) from None
+
+
+#: a focal length of the reduced camera → its CameraInfo name and the binning dividing it
+_BINNED = {'px': ('fx', 'binning_x'), 'py': ('fy', 'binning_y')}
+
+
+def _reduced_violation(v: Violation, camera, red: Reduction) -> Violation:
+    """Return ``v`` (of the reduced camera) naming the binning and roi that made its value."""
+    quantity = v.quantity
+    if quantity in _BINNED:  # e.g. 'py = fy / binning_y = 610.0 / 96'
+        f, binning = _BINNED[quantity]
+        quantity = (f'{quantity} = {f} / {binning} = {getattr(camera, quantity)!r} / '
+                    f'{getattr(red, binning)}')
+    return Violation(quantity, v.value, v.bound, f"{v.limit}; the camera_info's {red} leave a "
+                     f'{red.size[0]}x{red.size[1]} image')
+
+
+def calibrated_camera(camera):
+    """
+    Return the camera of the calibrated image that ``camera``'s reduction was made from.
+
+    The inverse of :func:`reduced_camera` (``camera`` itself when it has no reduction): the
+    camera a CameraInfo's own fields describe, before its binning and roi.
+    """
+    red = camera.reduction
+    if red is None:
+        return camera
+    u0, v0 = red.to_full(camera.u0, camera.v0)
+    return replace(camera, px=camera.px * red.binning_x, py=camera.py * red.binning_y, u0=u0,
+                   v0=v0, width=red.full_width, height=red.full_height, reduction=None)
 
 
 def check_camera_for_image(camera, width: int, height: int, applies_distortion: bool):

@@ -45,7 +45,8 @@ import numpy as np
 from sphere_servo.core.distortion import det2
 from sphere_servo.core.geometry import GeometryError
 from sphere_servo.core.types import Points2, Points3
-from sphere_servo.core.validation import Bound, check_number, check_range, refuse, Violation
+from sphere_servo.core.validation import (Bound, check_number, check_range, check_whole, refuse,
+                                          Violation)
 
 _AXIS = np.array([0.0, 0.0, 1.0])
 
@@ -63,6 +64,12 @@ PRINCIPAL_POINT_MARGIN = 1.0
 
 class CameraError(GeometryError):
     """Camera parameters that no camera has, or a camera unusable for the given image."""
+
+
+def image_side(name: str, value) -> int:
+    """Return an image's ``width`` or ``height`` as an int, or refuse it (CameraError)."""
+    return check_whole(CameraError, name, value, 1, MAX_IMAGE_SIDE,
+                       f'image size must be a whole number of pixels in [1, {MAX_IMAGE_SIDE}]')
 
 
 class Lifted(NamedTuple):
@@ -187,12 +194,7 @@ class CentralCamera:
             check_number(CameraError, name, getattr(self, name))
         for name, c in coefficients.items():
             check_number(CameraError, name, c)
-        for name in ('width', 'height'):
-            n = check_number(CameraError, name, getattr(self, name))
-            if not (1 <= n <= MAX_IMAGE_SIDE and n == int(n)):
-                refuse(CameraError, name, getattr(self, name), Bound.RANGE,
-                       f'image size must be a whole number of pixels in [1, {MAX_IMAGE_SIDE}]')
-        side = max(int(self.width), int(self.height))
+        side = max(image_side(name, getattr(self, name)) for name in ('width', 'height'))
         lo, hi = FOCAL_RATIO_MIN * side, FOCAL_RATIO_MAX * side
         for name in ('px', 'py'):
             f = getattr(self, name)

@@ -8,8 +8,8 @@ A check that fails raises an error class of the caller's layer (a
 and the bound itself, so a node can log ``str(error)`` and a test or a supervisor can
 compare ``error.violation.bound`` with an enum, never with a message.
 
-The helpers below are the elementary checks (shape, finite, range, unit norm); the physical
-bounds they are given, and why, are documented where they are used
+The helpers below are the elementary checks (shape, finite, range, whole number, unit
+norm); the physical bounds they are given, and why, are documented where they are used
 (``core/measurement.py``, ``core/features.py``, ``core/central.py``, ``sim/arm.py``).
 """
 from __future__ import annotations
@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 import math
+import numbers
 from typing import NoReturn
 
 import numpy as np
@@ -45,10 +46,10 @@ class Bound(str, Enum):
 def _text(value) -> str:
     if isinstance(value, np.ndarray):
         value = value.tolist()
-    if isinstance(value, float):
-        return repr(value)
+    if isinstance(value, float):  # numpy's float64 too, without its 'np.float64(…)'
+        return repr(float(value))
     if isinstance(value, (list, tuple)) and all(isinstance(v, float) for v in value):
-        return '[' + ', '.join(repr(v) for v in value) + ']'
+        return '[' + ', '.join(repr(float(v)) for v in value) + ']'
     return str(value)
 
 
@@ -114,6 +115,34 @@ def check_range(error: type, quantity: str, value, lo: float = -math.inf,
         right = f' {"<" if hi_open else "≤"} {hi:g}' if hi < math.inf else ''
         refuse(error, quantity, x, Bound.RANGE, f'{left}{quantity}{right}')
     return x
+
+
+def check_whole(error: type, quantity: str, value, lo: float = -math.inf,
+                hi: float = math.inf, limit: str = '') -> int:
+    """
+    Return ``value`` as an int in ``[lo, hi]``, or refuse it: a size, a count, an offset.
+
+    A whole number is an int or a float equal to one, of any real type (numpy's too: a
+    message's ``np.uint32``, a bag's ``480.0``, a 0-d array). Refused: what is no real
+    number, a bool (``True`` is no size of 1) and a str (SHAPE); inf, NaN (FINITE); a
+    fraction, which ``int()`` would truncate (480.5 rows read as 480), and a value outside
+    ``[lo, hi]`` (RANGE). ``limit`` replaces the refusal's statement of the bound
+    (default: ``a whole number ≥ lo and ≤ hi``, either end left out when infinite).
+    """
+    if not limit:
+        ends = (f'≥ {lo:.15g}' if lo > -math.inf else '',
+                f'≤ {hi:.15g}' if hi < math.inf else '')
+        limit = ' '.join(['a whole number', ' and '.join(e for e in ends if e)]).rstrip()
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        refuse(error, quantity, value, Bound.SHAPE, f'{limit}, not a {type(value).__name__}')
+    if not (isinstance(value, numbers.Integral) or math.isfinite(value)):
+        refuse(error, quantity, value, Bound.FINITE, limit)
+    n = int(value)
+    if n != value or not lo <= n <= hi:
+        refuse(error, quantity, value, Bound.RANGE, limit)
+    return n
 
 
 def check_unit(error: type, quantity: str, value, tol: float = UNIT_TOL) -> np.ndarray:

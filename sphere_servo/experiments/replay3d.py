@@ -51,6 +51,7 @@ from sphere_servo.bag.bagio import BagError
 from sphere_servo.bag.offline import IMAGE_TOPIC, load_settings
 from sphere_servo.bag.run import (cli_error, load_arm_params, output_path, print_warnings,
                                   read_run, Run, run_scene)
+from sphere_servo.core.camera_models import calibrated_camera
 from sphere_servo.experiments.video import check_stamps, prepare_output, unrecorded_iterations
 from sphere_servo.pipeline.arm_sim import sim_arm
 from sphere_servo.sim.scene import (MarkerKind, MarkerSpec, package_dirs, PACKAGE_SCHEME,
@@ -115,20 +116,24 @@ def check_scenario(run: Run, scene: Scene) -> None:
     Refuse (BagError) a scene whose camera or target is not the one the bag recorded.
 
     The camera: the bag's first ``camera_info`` (when it reads as a pinhole) against the
-    scene's size and intrinsics (not its distortion model). The target: every mark the
-    recorded measurements name must be one of the scene's. Its size is not checked: the
+    scene's size and intrinsics (not its distortion model). A camera_info with binning or
+    an roi (a crop_decimate stream of the simulator's images) matches as its calibrated
+    camera, or as the camera of its reduced images; refused, it is named with its binning
+    and roi. The target: every mark the recorded measurements name must be one of the
+    scene's. Its size is not checked: the
     measured ``r_delta`` depends on the detector's intrinsics, off on purpose in the
     ``calibration_error`` scenario (its own bag measures a 5 cm sphere as 3.8 cm).
     """
     cam, rec = scene.camera, run.camera
     if rec is not None:
-        mine = (cam.width, cam.height, cam.px, cam.py, cam.u0, cam.v0)
-        theirs = (rec.width, rec.height, rec.px, rec.py, rec.u0, rec.v0)
-        if not np.allclose(mine, theirs, rtol=1e-6, atol=1e-6):
+        red, full = rec.reduction, calibrated_camera(rec)
+        if not any(np.allclose(_intrinsics(cam), _intrinsics(c), rtol=1e-6, atol=1e-6)
+                   for c in (rec, full)):
+            how = '' if red is None else f': {red}, px={full.px:g} there'
             raise BagError(f"{run.path}: the bag's camera_info ({rec.width}x{rec.height}, "
-                           f'px={rec.px:g}) is not the camera of this scenario ({cam.width}x'
-                           f'{cam.height}, px={cam.px:g}): give --config the run was '
-                           'recorded with')
+                           f'px={rec.px:g}{how}) is not the camera of this scenario '
+                           f'({cam.width}x{cam.height}, px={cam.px:g}): give --config the '
+                           'run was recorded with')
     names = {k[:-2] for m in run.meas.values() for k in m
              if k.endswith('_u') and k != 'ellipse_u'}
     if names - set(scene.target.marks):
@@ -136,6 +141,10 @@ def check_scenario(run: Run, scene: Scene) -> None:
                        f'{", ".join(sorted(names - set(scene.target.marks)))} that the target '
                        f'of this scenario has not ({", ".join(scene.target.marks)}): give '
                        '--config the run was recorded with')
+
+
+def _intrinsics(cam) -> tuple:
+    return cam.width, cam.height, cam.px, cam.py, cam.u0, cam.v0
 
 
 def _mesh(spec: MarkerSpec, meshes: dict):

@@ -15,7 +15,9 @@ raw images are taken (``roi.do_rectify`` is not used). A camera_info is *refused
 (no camera, and why) when :func:`camera_from_info` refuses it: a K no camera has (not
 finite, skew, ``fx = 1e300``, a focal length ≤ 0, a principal point far off the image), an
 unknown distortion model, a binning or roi that no image has (not a whole number ≥ 0, an
-roi leaving the calibrated image or of zero width only, an image of no pixel), or an
+roi leaving the calibrated image or of zero width only, an image of no pixel) or that
+leaves a camera no image has (a focal length under 1 % of the reduced image's larger side:
+named with the binning that divided it, e.g. 1×96 of 640×480 with fy = 610), or an
 ``intrinsics_error`` that makes the camera impossible (the error is named). An image is
 *rejected*, the result says why and its measurement is empty (target lost, so the servo
 stops), on a bad buffer (unsupported encoding, ``step``/``data`` lengths that disagree,

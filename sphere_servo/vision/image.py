@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from sphere_servo.core.types import Image
+from sphere_servo.core.validation import check_whole
 
 # the encodings the detector works on (8-bit colour or grey)
 ENCODINGS = ('rgb8', 'bgr8', 'mono8')
@@ -39,15 +40,16 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     one channel, of the encoding's element type (native byte order): a view on ``data``
     for 8-bit encodings, a copy for a byte-swapped one. ``encodings`` are the accepted
     ones (default: the detector's :data:`ENCODINGS`; any of :data:`LAYOUTS`). Raises
-    ``ValueError`` on an unsupported encoding, a size or step that is no whole number, a
+    ``ValueError`` on an unsupported encoding, a size or step that is no whole number ≥ 0
+    (:func:`~sphere_servo.core.validation.check_whole`: a bool or a fraction is none), a
     zero size, a ``step`` smaller than a row, data that are no bytes, or
     ``len(data) != step · height``.
     """
     if encoding not in encodings or encoding not in LAYOUTS:
         raise ValueError(f'unsupported image encoding {encoding!r}: use one of '
                          f'{tuple(encodings)}')
-    height, width, step = (_whole(name, value) for name, value in
-                           (('height', height), ('width', width), ('step', step)))
+    height, width, step = (check_whole(ValueError, f'image {name}', value, 0) for name, value
+                           in (('height', height), ('width', width), ('step', step)))
     if height <= 0 or width <= 0:
         raise ValueError(f'image has zero size: {width}x{height}')
     ch, dtype = LAYOUTS[encoding]
@@ -76,17 +78,6 @@ def image_from_buffer(height: int, width: int, step: int, encoding: str, data, *
     if dt.itemsize > 1:
         rows = np.ascontiguousarray(rows).view(dt).astype(dtype, copy=False)
     return rows.reshape(height, width, ch) if ch > 1 else rows.reshape(height, width)
-
-
-def _whole(name: str, value) -> int:
-    """Return ``value`` as an int, or ``ValueError`` (int() would make 2.5 rows 2, or raise)."""
-    try:
-        whole = int(value)
-    except (TypeError, ValueError, OverflowError):
-        whole = None
-    if whole is None or whole != value:
-        raise ValueError(f'image {name} = {value!r} is not a whole number')
-    return whole
 
 
 def without_alpha(img: np.ndarray, encoding: str) -> tuple[np.ndarray, str]:
