@@ -17,6 +17,8 @@ and features of every image, the servo's iterations.
   README's replay over ROS runs it) is the recorded one: exactly from PNG, close from JPEG.
 - ``refeatures --check`` reproduces every recorded stream from the PNG bag (1e-9), and
   from the JPEG bag within the bounds stated below.
+- A run whose images an older plugin compressed (``rgb8; png compressed``: the codec given
+  rgb8) is read in the colours compressed_image_transport reads it in: the same results.
 - ``replay3d`` reads only the images' headers: the compressed run's page is the raw run's,
   command for command, one key per servo iteration.
 """
@@ -56,15 +58,24 @@ def recorded(tmp_path_factory):
     return run_bag(tmp_path_factory.getbasetemp())
 
 
-def compressed_run(src: Path, dst: Path, codec: str) -> Path:
-    """Copy a run's bag with its camera as image_transport's compressed topic only."""
+def compressed_run(src: Path, dst: Path, codec: str, fmt: str | None = None) -> Path:
+    """
+    Copy a run's bag with its camera as image_transport's compressed topic only.
+
+    The plugin's format and bytes (rgb8 given to the codec as bgr8), or ``fmt`` with the
+    rgb8 frame given to the codec as it is (what older plugins did and said so).
+    """
     ts = typestore()
 
     def to_compressed(msg):
         assert msg.encoding == 'rgb8'
-        return ts.types[COMPRESSED_TYPE](header=msg.header,
-                                         format=f'rgb8; {codec} compressed bgr8',
-                                         data=encode(pixels(msg), codec))
+        if fmt is None:
+            return ts.types[COMPRESSED_TYPE](header=msg.header,
+                                             format=f'rgb8; {codec} compressed bgr8',
+                                             data=encode(pixels(msg), codec))
+        # encode gives the codec the frame reversed: reversed first, it gets rgb8
+        return ts.types[COMPRESSED_TYPE](header=msg.header, format=fmt,
+                                         data=encode(pixels(msg)[..., ::-1], codec))
     return rewrite(src, dst, on(RAW, to_compressed),
                    renamed={RAW: (COMPRESSED, COMPRESSED_TYPE)})
 
@@ -235,6 +246,23 @@ def meshcat_commands(page: Path) -> list:
             return [numbered(v) for v in x]
         return x
     return numbered(_commands(page.read_text(encoding='utf-8')))
+
+
+def test_a_run_recorded_by_an_older_plugin(recorded, bags, taught, tmp_path):
+    """
+    ``rgb8; png compressed``: the codec was given rgb8 (red stored as the file's blue).
+
+    compressed_image_transport reads the decoded channels of this format as rgb8
+    (:func:`sphere_servo.vision.compressed.parse_format`); so do the tools: the exported
+    taught image is the frame, and ``refeatures --check`` reproduces the run (1e-9). Read as
+    bgr8 (before), the detector found no sphere in the taught image (red and blue swapped)
+    and refeatures refused the run.
+    """
+    b = compressed_run(recorded.bag, tmp_path / 'old', 'png', fmt='rgb8; png compressed')
+    assert np.array_equal(export(b, 'png', tmp_path / 'old.png'), taught)
+    code, stdout, err = run_tool(refeatures, [b, '--config', CONFIG, '--image-topic',
+                                              COMPRESSED, '--servo', '--check'])
+    assert code == 0 and not err, err
 
 
 def test_replay3d_of_the_compressed_run_is_the_raw_runs(recorded, bags, tmp_path):
