@@ -13,6 +13,7 @@ modulo 256, ``without_alpha`` turned a 2-D or 3-channel image into a colour one.
 from __future__ import annotations
 
 from array import array
+from dataclasses import astuple
 import io
 import struct
 import time
@@ -73,13 +74,17 @@ def close_to_raw(out, raw, px: float = 1.5) -> None:
 
 # --- format ----------------------------------------------------------------------------------
 @pytest.mark.parametrize('fmt, want', [
-    ('RGB8 ;  JPEG   compressed   BGR8', ('jpeg', 'bgr8')),
-    ('rgb8;\tjpeg\ncompressed bgr8', ('jpeg', 'bgr8')),
-    ('png compressed rgb8', ('png', 'rgb8')),
-    ('rgb8; jpeg compressed', ('jpeg', '')),
+    ('RGB8 ;  JPEG   compressed   BGR8', ('jpeg', 'rgb8', 'bgr8', 'bgr8')),
+    ('rgb8;\tjpeg\ncompressed bgr8', ('jpeg', 'rgb8', 'bgr8', 'bgr8')),
+    # no ';': compressed_image_transport reads the decoded channels as bgr8, whatever follows
+    ('png compressed rgb8', ('png', '', 'rgb8', 'bgr8')),
+    # a colour original without 'compressed bgr…': it reads them as rgb (older plugins')
+    ('rgb8; jpeg compressed', ('jpeg', 'rgb8', '', 'rgb8')),
+    ('bgr8; jpeg', ('jpeg', 'bgr8', '', 'rgb8')),
 ])
 def test_format_spacing_and_case_are_read(fmt, want):
-    assert parse_format(fmt) == want
+    """(codec, original encoding, compressed encoding, decoded colour order)."""
+    assert astuple(parse_format(fmt)) == want
 
 
 @pytest.mark.parametrize('fmt', ['rgb8; jpeg compressed bgr8; q=80', 'rgb8; compressedDepth png',

@@ -36,21 +36,25 @@ def stamp(msg) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
-def rewrite(src: Path, dst: Path, edit=None, storage: str = 'mcap') -> Path:
+def rewrite(src: Path, dst: Path, edit=None, storage: str = 'mcap', renamed=None) -> Path:
     """
     Copy the bag ``src`` to ``dst`` through ``edit(topic, bag ns, msg) -> [(ns, msg), ...]``.
 
     ``msg`` is the deserialized message (rosbags' dataclass), to change in place or replace;
     the list may be empty (the message dropped) or hold several (duplicated, re-timed).
+    ``renamed``: topic → (new topic, new type): what ``edit`` returns for that topic is
+    written there instead (a camera recorded as image_transport's compressed topic only).
     """
     ts = typestore()
     plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
+    renamed = renamed or {}
     with bag(src) as reader, Writer(dst, version=Writer.VERSION_LATEST,
                                     storage_plugin=plugin) as w:
-        conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts,
-                                           offered_qos_profiles=[rosbag2_qos(c.topic)])
-                 for c in reader.connections}
-        types = {c.topic: c.msgtype for c in reader.connections}
+        where = {c.topic: renamed.get(c.topic, (c.topic, c.msgtype)) for c in reader.connections}
+        conns = {t: w.add_connection(name, ty, typestore=ts,
+                                     offered_qos_profiles=[rosbag2_qos(name)])
+                 for t, (name, ty) in where.items()}
+        types = {t: ty for t, (_, ty) in where.items()}
         for c, t, raw in iter_raw(reader):
             if edit is None:
                 w.write(conns[c.topic], t, raw)

@@ -323,9 +323,10 @@ def decode_image(msg) -> tuple[np.ndarray, str]:
     Return ``(array, encoding)`` of a deserialized Image or CompressedImage.
 
     An Image: :func:`image_to_array` and its own encoding (an alpha channel kept). A
-    CompressedImage: :func:`~sphere_servo.vision.compressed.decode_compressed` (``bgr8``,
-    ``rgb8`` as the producer gave the codec, or ``mono8``). BagError on what neither reads
-    (a compressedDepth or 16-bit image, corrupt or truncated bytes), saying why.
+    CompressedImage: :func:`~sphere_servo.vision.compressed.decode_compressed` (``bgr8`` or
+    ``rgb8``, as compressed_image_transport reads its format, or ``mono8``). BagError on
+    what neither reads (a compressedDepth or 16-bit image, corrupt or truncated bytes),
+    saying why.
     """
     if not is_compressed(msg):
         return image_to_array(msg), str(msg.encoding)
@@ -341,7 +342,8 @@ def iter_images(path: str | Path, topic: str = '/camera/image_raw',
     Offline processing: (bag timestamp ns, header, image array) for each image on ``topic``.
 
     An Image or a CompressedImage (:func:`decode_image`: a compressed colour image comes in
-    the order its producer gave the codec, usually bgr8). The header (``stamp.sec``,
+    the order compressed_image_transport reads its format in, bgr8 for the plugin's own
+    ``rgb8; jpeg compressed bgr8``). The header (``stamp.sec``,
     ``stamp.nanosec``, ``frame_id``) is kept so that whatever is computed from the image can
     carry the image's own stamp, as the live nodes do.
     """

@@ -4,20 +4,24 @@ Compressed images (no ROS): ``sensor_msgs/CompressedImage`` → ndarray.
 What image_transport's ``compressed`` plugin publishes and most recorded camera bags carry.
 ``format`` is image_transport's ``"<encoding>; <jpeg|png> compressed <encoding>"`` (the
 original encoding, then the one the codec was given: colour images are compressed as bgr8
-by OpenCV), or a bare codec name (``"jpeg"``, ``"png"``: Foxglove, older drivers). The bytes
-are decoded by OpenCV (``cv2.imdecode``, as the plugin does); a colour image comes out in
-the order the producer gave the codec: ``bgr8`` unless the format names ``rgb8`` as the
-compressed encoding. Refused (``ValueError``, saying why): an empty buffer, data that are
-no bytes, bytes OpenCV cannot decode or whose image size cannot be read, a format that is not
-a colour or grey image of 8 bits (image_transport's ``compressedDepth``, a 16-bit PNG, an
-unknown codec), bytes of another codec than JPEG, PNG or WebP (whichever the format names, as
-OpenCV reads what the bytes are), and an image larger than the bound given (the camera's
-size; a decompression bomb is refused before it is decoded). A refused frame is never
-measured.
+by OpenCV), an older plugin's ``"rgb8; jpeg compressed"`` / ``"rgb8; jpeg"``, or a bare codec
+name (``"jpeg"``, ``"png"``: Foxglove, cv_bridge, the first plugin). The bytes are decoded
+by OpenCV (``cv2.imdecode``, as the plugin does), and a colour image's channels are in the
+order compressed_image_transport's subscriber reads the format in (:func:`parse_format`):
+the detector sees red where RViz, rqt and every image_transport subscriber do.
+Refused (``ValueError``, saying why): an empty buffer, data that are no bytes, bytes OpenCV
+cannot decode or whose image size cannot be read, a format that is not a colour or grey
+image of 8 bits (image_transport's ``compressedDepth``, a 16-bit PNG, an unknown codec, an
+original encoding the detector does not read, such as a Bayer mosaic), an image that the
+format calls mono8 but that decodes to colour, bytes of another codec than JPEG, PNG or WebP
+(whichever the format names, as OpenCV reads what the bytes are), and an image larger than
+the bound given (the camera's size; a decompression bomb is refused before it is decoded).
+A refused frame is never measured.
 """
 from __future__ import annotations
 
 from array import array
+from dataclasses import dataclass
 import io
 import warnings
 
@@ -38,10 +42,50 @@ CONTENTS = ('JPEG', 'MPO', 'PNG', 'WEBP')
 MAX_PIXELS = 64_000_000
 
 
-def parse_format(fmt: str) -> tuple[str, str]:
-    """
-    Return ``(codec, compressed encoding)`` of a CompressedImage ``format`` ('' if unsaid).
+#: the original encodings (before the ``;``) of the images decoded here: the detector's own
+COLOUR = ('rgb8', 'bgr8', 'rgba8', 'bgra8')
+ORIGINALS = COLOUR + ('mono8',)
 
+
+@dataclass(frozen=True)
+class Format:
+    """
+    A CompressedImage ``format``, as compressed_image_transport's subscriber reads it.
+
+    ``codec``: jpeg, jpg, png or webp. ``original``: the image's encoding before the codec
+    ('' when the format has no ``;``). ``compressed``: the encoding named after
+    ``compressed`` ('' if none). ``colour``: ``bgr8`` or ``rgb8``, the order of a decoded
+    colour image's channels (OpenCV returns the file's channels reversed, so ``rgb8`` means
+    the producer gave the codec rgb: its file has red and blue swapped).
+    """
+
+    codec: str
+    original: str
+    compressed: str
+    colour: str
+
+
+def parse_format(fmt: str) -> Format:
+    """
+    Read a CompressedImage ``format`` as compressed_image_transport's subscriber does.
+
+    Upstream, ``CompressedSubscriber::internalCallback`` (ros-perception/
+    image_transport_plugins, compressed_image_transport/src/compressed_subscriber.cpp: the
+    rclcpp file with the ``mode`` parameter; ROS 1's, e.g. f0d9ffb, has the same logic)
+    decodes with ``cv::imdecode`` (line 112; IMREAD_UNCHANGED by default: BGR for a colour
+    file), then:
+
+    - no ``;`` (lines 115-128): 1 channel is mono8, 3 are bgr8, as decoded: the file is a
+      standard JPEG/PNG (``jpeg``, ``png``; the words after the codec are not read);
+    - ``;`` and a colour original (rgb8, bgr8, rgba8, bgra8: ``enc::isColor``, lines
+      130-137): the decoded channels are taken as bgr when the text after the ``;`` holds
+      ``compressed bgr`` (lines 140-152: BGR2RGB for an rgb8 original), else as rgb (lines
+      153-166: RGB2BGR for a bgr8 original, nothing for rgb8). So ``rgb8; jpeg compressed
+      bgr8`` decodes to bgr8; ``rgb8; jpeg compressed rgb8``, ``rgb8; jpeg`` and ``rgb8;
+      jpeg compressed`` (what older plugins wrote: they gave the codec rgb8) to rgb8;
+    - ``;`` and another original (mono8): labelled so, the channels as decoded.
+
+    Here the format's case and spacing are not significant (upstream compares verbatim).
     Raises ``ValueError`` for a format that is not an 8-bit image this module decodes.
     """
     text = ' '.join(str(fmt).split()).lower()
@@ -55,14 +99,17 @@ def parse_format(fmt: str) -> tuple[str, str]:
         raise ValueError(f'CompressedImage format {fmt!r}: codec {codec!r} is not an 8-bit '
                          f'image codec this detector decodes ({", ".join(CODECS)}; '
                          'compressedDepth is depth)')
-    if sep and head.strip() and not head.strip().endswith('8'):
+    original = head.strip() if sep else ''
+    if sep and original not in ORIGINALS:
         raise ValueError(f'CompressedImage format {fmt!r}: the original encoding '
-                         f'{head.strip()!r} is not 8-bit colour or grey')
+                         f'{original!r} is not 8-bit colour or grey that the detector reads '
+                         f'({", ".join(ORIGINALS)})')
     enc = words[2] if len(words) >= 3 and words[1] == 'compressed' else ''
     if enc not in ('', 'bgr8', 'rgb8', 'mono8', 'bgra8', 'rgba8'):
         raise ValueError(f'CompressedImage format {fmt!r}: compressed encoding {enc!r} is '
                          'not 8-bit colour or grey')
-    return codec, enc
+    rgb = original in COLOUR and 'compressed bgr' not in tail
+    return Format(codec, original, enc, 'rgb8' if rgb else 'bgr8')
 
 
 def compressed_bytes(data) -> np.ndarray:
@@ -115,11 +162,12 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
     """
     Decode a CompressedImage's bytes; return the image and its encoding.
 
-    ``(H, W, 3)`` ``bgr8``/``rgb8`` (alpha dropped), or ``(H, W)`` ``mono8``; C-contiguous.
-    ``max_size`` = (width, height): the largest image decoded (the camera's); without it,
-    :data:`MAX_PIXELS`. Raises ``ValueError`` (module docstring: what is refused).
+    ``(H, W, 3)`` ``bgr8``/``rgb8`` (alpha dropped; the order :func:`parse_format` reads in
+    the format), or ``(H, W)`` ``mono8``; C-contiguous. ``max_size`` = (width, height): the
+    largest image decoded (the camera's); without it, :data:`MAX_PIXELS`. Raises
+    ``ValueError`` (module docstring: what is refused).
     """
-    _, enc = parse_format(fmt)
+    form = parse_format(fmt)
     buf = compressed_bytes(data)
     if buf.size == 0:
         raise ValueError('CompressedImage has no data')
@@ -153,9 +201,11 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
                          'needed')
     if img.ndim == 2 or img.shape[2] == 1:
         return np.ascontiguousarray(img.reshape(img.shape[:2])), 'mono8'
-    rgb_order = enc.startswith('rgb')
+    if form.original == 'mono8':   # upstream labels it mono8 all the same: no order to trust
+        raise ValueError(f'CompressedImage format {fmt!r} says mono8, but its data decode '
+                         f'to {img.shape[2]} channels')
     if img.shape[2] == 4:
-        return without_alpha(img, 'rgba8' if rgb_order else 'bgra8')
+        return without_alpha(img, 'rgba8' if form.colour == 'rgb8' else 'bgra8')
     if img.shape[2] != 3:
         raise ValueError(f'CompressedImage decodes to {img.shape[2]} channels')
-    return np.ascontiguousarray(img), 'rgb8' if rgb_order else 'bgr8'
+    return np.ascontiguousarray(img), form.colour
