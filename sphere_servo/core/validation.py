@@ -129,6 +129,8 @@ def check_whole(error: type, quantity: str, value, lo: float = -math.inf,
     ``[lo, hi]`` (RANGE). ``limit`` replaces the refusal's statement of the bound
     (default: ``a whole number ≥ lo and ≤ hi``, either end left out when infinite).
     """
+    if type(value) is int and lo <= value <= hi:  # the usual case, on every image: no text
+        return value
     if not limit:
         ends = (f'≥ {lo:.15g}' if lo > -math.inf else '',
                 f'≤ {hi:.15g}' if hi < math.inf else '')
