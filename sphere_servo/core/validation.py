@@ -123,7 +123,8 @@ def check_whole(error: type, quantity: str, value, lo: float = -math.inf,
     Return ``value`` as an int in ``[lo, hi]``, or refuse it: a size, a count, an offset.
 
     A whole number is an int or a float equal to one, of any real type (numpy's too: a
-    message's ``np.uint32``, a bag's ``480.0``, a 0-d array). Refused: what is no real
+    message's ``np.uint32``, a bag's ``480.0``, a 0-d array, a Fraction of any size; not a
+    Decimal, which is no ``numbers.Real``). Refused: what is no real
     number, a bool (``True`` is no size of 1) and a str (SHAPE); inf, NaN (FINITE); a
     fraction, which ``int()`` would truncate (480.5 rows read as 480), and a value outside
     ``[lo, hi]`` (RANGE). ``limit`` replaces the refusal's statement of the bound
@@ -139,7 +140,10 @@ def check_whole(error: type, quantity: str, value, lo: float = -math.inf,
         value = value[()]
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         refuse(error, quantity, value, Bound.SHAPE, f'{limit}, not a {type(value).__name__}')
-    if not (isinstance(value, numbers.Integral) or math.isfinite(value)):
+    # a ratio is finite (math.isfinite would convert 10**400 / 1 to a float: OverflowError);
+    # numpy's own test for its floats (a long double of 1e4000 is finite, no float's inf)
+    if not (isinstance(value, numbers.Rational) or (
+            np.isfinite(value) if isinstance(value, np.floating) else math.isfinite(value))):
         refuse(error, quantity, value, Bound.FINITE, limit)
     n = int(value)
     if n != value or not lo <= n <= hi:
