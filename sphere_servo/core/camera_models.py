@@ -30,6 +30,7 @@ convention: :class:`~sphere_servo.core.central.Reduction`).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Set as AbstractSet
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 import math
@@ -349,7 +350,8 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
     ``roi``'s ``do_rectify`` is not taken: this package lifts the raw pixels through the
     distortion model, and a raw roi is the same in both cases. Refused
     (:class:`~sphere_servo.core.central.CameraError`, naming the fields and their values):
-    a binning or an roi entry that is not a whole number ≥ 0, a binning larger than the
+    a binning or an roi entry that is not a whole number ≥ 0, an roi that is no sequence of
+    4 (a set or a dict: their order is no field order), a binning larger than the
     image, an roi of zero width but not zero height (or the reverse), an roi that leaves the
     calibrated ``width × height`` image, and a published image of no pixel.
     """
@@ -357,8 +359,8 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
     by = check_whole(CameraError, 'CameraInfo.binning_y', binning_y, 0) or 1
     if roi is None:
         roi = (0, 0, 0, 0)
-    try:
-        values = list(roi)
+    try:   # a set's or a dict's order is no field order: (x, y, w, h) of a set is any
+        values = None if isinstance(roi, (AbstractSet, Mapping)) else list(roi)
     except TypeError:
         values = None
     if values is None or len(values) != 4:

@@ -28,7 +28,7 @@ that made the camera's, or a model whose distortion the detector does not apply)
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence, Set as AbstractSet
 from dataclasses import dataclass
 from enum import Enum
 from functools import lru_cache
@@ -90,15 +90,19 @@ def camera_from_info(width: int, height: int, k: Sequence[float], d: Sequence[fl
     same object, so what is derived from a camera (the detector's lift tables) is kept too.
     """
     try:
+        roi = roi if roi is None or isinstance(roi, (AbstractSet, Mapping)) else tuple(roi)
         key = (width, height, tuple(float(x) for x in k),
                None if d is None else tuple(float(x) for x in d),
                tuple(float(x) for x in intrinsics_error), str(distortion_model),
-               binning_x, binning_y, None if roi is None else tuple(roi))
+               binning_x, binning_y, roi)
+        # the whole numbers' types too: equal values of another type are another key
+        # (False == 0 and Decimal(640) == 640, refused, must not take their cached camera)
+        types = tuple(type(v) for v in (width, height, binning_x, binning_y, *(roi or ())))
         hash(key)
     except (TypeError, ValueError):  # not numbers: the builder says what is wrong
         return _camera_from_info(width, height, k, d, intrinsics_error, distortion_model,
                                  binning_x, binning_y, roi)
-    return _camera_from_key(*key)
+    return _camera_from_key(types, *key)
 
 
 def camera_from_msg(info, intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.0)
@@ -109,7 +113,7 @@ def camera_from_msg(info, intrinsics_error: Sequence[float] = (0.0, 0.0, 0.0, 0.
 
 
 @lru_cache(maxsize=16)
-def _camera_from_key(*key):
+def _camera_from_key(types, *key):
     return _camera_from_info(*key)
 
 
