@@ -12,8 +12,9 @@ the detector sees red where RViz, rqt and every image_transport subscriber do.
 Refused (``ValueError``, saying why): an empty buffer, data that are no bytes, bytes OpenCV
 cannot decode or whose image size cannot be read, a format that is not a colour or grey
 image of 8 bits (image_transport's ``compressedDepth``, a 16-bit PNG, an unknown codec, an
-original encoding the detector does not read, such as a Bayer mosaic), an image that the
-format calls mono8 but that decodes to colour, bytes of another codec than JPEG, PNG or WebP
+original encoding the detector does not read, such as a Bayer mosaic, words after the
+compressed encoding, which leave what the codec was given a guess), an image that the
+format calls mono8 (original or compressed) but that decodes to colour, bytes of another codec than JPEG, PNG or WebP
 (whichever the format names, as OpenCV reads what the bytes are), and an image larger than
 the bound given (the camera's size; a decompression bomb is refused before it is decoded).
 A refused frame is never measured.
@@ -104,7 +105,13 @@ def parse_format(fmt: str) -> Format:
         raise ValueError(f'CompressedImage format {fmt!r}: the original encoding '
                          f'{original!r} is not 8-bit colour or grey that the detector reads '
                          f'({", ".join(ORIGINALS)})')
-    enc = words[2] if len(words) >= 3 and words[1] == 'compressed' else ''
+    if not (len(words) == 1 or words[1] == 'compressed' and len(words) <= 3):
+        # e.g. 'rgb8; png compressed rgb8 compressed bgr8': upstream finds 'compressed bgr'
+        # and reads bgr, yet the codec was said to be given rgb8. What the codec was given is
+        # no longer one thing: the colour order would be a guess
+        raise ValueError(f'CompressedImage format {fmt!r}: after the codec, expected nothing, '
+                         "'compressed' or 'compressed <encoding>'")
+    enc = words[2] if len(words) == 3 else ''
     if enc not in ('', 'bgr8', 'rgb8', 'mono8', 'bgra8', 'rgba8'):
         raise ValueError(f'CompressedImage format {fmt!r}: compressed encoding {enc!r} is '
                          'not 8-bit colour or grey')
@@ -201,7 +208,8 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
                          'needed')
     if img.ndim == 2 or img.shape[2] == 1:
         return np.ascontiguousarray(img.reshape(img.shape[:2])), 'mono8'
-    if form.original == 'mono8':   # upstream labels it mono8 all the same: no order to trust
+    if 'mono8' in (form.original, form.compressed):   # upstream labels it mono8 (an rgb8
+        # original compressed as mono8: reads it as rgb) all the same: no order to trust
         raise ValueError(f'CompressedImage format {fmt!r} says mono8, but its data decode '
                          f'to {img.shape[2]} channels')
     if img.shape[2] == 4:
