@@ -14,10 +14,10 @@ cannot decode or whose image size cannot be read, a format that is not a colour 
 image of 8 bits (image_transport's ``compressedDepth``, a 16-bit PNG, an unknown codec, an
 original encoding the detector does not read, such as a Bayer mosaic, words after the
 compressed encoding, which leave what the codec was given a guess), an image that the
-format calls mono8 (original or compressed) but that decodes to colour, bytes of another codec than JPEG, PNG or WebP
-(whichever the format names, as OpenCV reads what the bytes are), and an image larger than
-the bound given (the camera's size; a decompression bomb is refused before it is decoded).
-A refused frame is never measured.
+format calls mono8 (original or compressed) but that decodes to colour, bytes of another
+codec than JPEG, PNG or WebP (whichever the format names, as OpenCV reads what the bytes
+are), and an image larger than the bound given (the camera's size; a decompression bomb is
+refused before it is decoded). A refused frame is never measured.
 """
 from __future__ import annotations
 
