@@ -70,6 +70,7 @@ class Err(ValueError):
     (True, 0, math.inf, Bound.SHAPE), (np.bool_(False), 0, math.inf, Bound.SHAPE),
     (None, 0, math.inf, Bound.SHAPE), ('480', 0, math.inf, Bound.SHAPE),
     (480 + 0j, 0, math.inf, Bound.SHAPE), (float('nan'), 0, math.inf, Bound.FINITE),
+    (np.timedelta64(480), 0, math.inf, Bound.SHAPE),
 ], ids=lambda v: repr(v)[:24])
 def test_check_whole_of_every_number_type(value, lo, hi, want):
     if isinstance(want, Bound):
@@ -278,3 +279,14 @@ def test_a_mark_cut_by_the_image_border_is_not_measured_wrong(encoding, side):
                 if om.visible:
                     assert _angle(om.ray, truth[other]) < 0.3, (other, side)
     assert truth_seen >= 6 and cut >= 6
+
+
+@pytest.mark.parametrize('fmt', ['x' * 13000, 'rgb8; ' + 'j' * 5000, 'rgb8; jpeg compressed '
+                                 + 'b' * 5000, 'bayer' * 3000 + '; jpeg'])
+def test_a_huge_format_is_refused_in_a_short_message(fmt):
+    with pytest.raises(ValueError) as info:
+        parse_format(fmt)
+    assert len(str(info.value)) < 400
+    with pytest.raises(ValueError) as info:
+        decode_compressed(fmt, b'\xff\xd8')
+    assert len(str(info.value)) < 400

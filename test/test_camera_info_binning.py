@@ -78,9 +78,9 @@ def test_the_reduced_camera_by_hand(reduce, want):
 
 
 @pytest.mark.parametrize('bx, by, roi', [(0, 0, None), (1, 1, None), (0, 1, (0, 0, 0, 0)),
-                                         (1, 0, (0, 0, 640, 480)), (0, 0, (7, 5, 0, 0))])
+                                         (1, 0, (0, 0, 640, 480))])
 def test_no_binning_and_the_full_roi_are_the_calibrated_camera(bx, by, roi):
-    """Binning 0 is 1; an roi of zero size (RegionOfInterest.msg) or the full one is none."""
+    """Binning 0 is 1; an roi all zero (CameraInfo.msg) or the full one is none."""
     assert camera_info_reduction(640, 480, bx, by, roi) is None
     cam = camera_from_info(*ARGS, binning_x=bx, binning_y=by, roi=roi)
     assert cam == CAM and cam.reduction is None
@@ -173,6 +173,18 @@ def test_an_roi_of_zero_width_or_height_only(roi):
     reason = refusal(roi=roi)
     assert f'CameraInfo.roi (x_offset, y_offset, width, height) = {roi}' in reason
     assert 'both 0 (the full image) or both > 0' in reason
+
+
+@pytest.mark.parametrize('binning', [0, 2])
+@pytest.mark.parametrize('roi', [(10, 0, 0, 0), (0, 20, 0, 0), (639, 479, 0, 0)])
+def test_an_roi_of_no_size_at_an_offset_is_no_full_image(roi, binning):
+    # image_geometry takes only (0, 0, 0, 0) as the full image; this one has no pixel
+    with pytest.raises(CameraError) as err:
+        camera_info_reduction(640, 480, binning, binning, roi)
+    assert err.value.violation.bound is Bound.GEOMETRY
+    assert err.value.violation.value == roi
+    assert camera_info_reduction(640, 480, binning, binning, (0, 0, 0, 0)) == \
+        camera_info_reduction(640, 480, binning, binning, None)
 
 
 @pytest.mark.parametrize('roi, needle', [((1, 2, 3), 'CameraInfo.roi = (1, 2, 3)'),

@@ -352,7 +352,8 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
     (:class:`~sphere_servo.core.central.CameraError`, naming the fields and their values):
     a binning or an roi entry that is not a whole number ≥ 0, an roi that is no sequence of
     4 (a set or a dict: their order is no field order), a binning larger than the
-    image, an roi of zero width but not zero height (or the reverse), an roi that leaves the
+    image, an roi of zero width but not zero height (or the reverse), one of zero size at an
+    offset (image_geometry's full image is all four zero), an roi that leaves the
     calibrated ``width × height`` image, and a published image of no pixel.
     """
     bx = check_whole(CameraError, 'CameraInfo.binning_x', binning_x, 0) or 1
@@ -368,6 +369,11 @@ def camera_info_reduction(width, height, binning_x=0, binning_y=0, roi=None
                '4 whole numbers (x_offset, y_offset, width, height)')
     roi = tuple(check_whole(CameraError, f'CameraInfo.roi.{n}', v, 0)
                 for n, v in zip(('x_offset', 'y_offset', 'width', 'height'), values))
+    if roi[2] == roi[3] == 0 and roi[:2] != (0, 0):
+        # image_geometry takes only all four zero as the full image: this is an roi of no
+        # pixel, at an offset
+        refuse(CameraError, 'CameraInfo.roi (x_offset, y_offset, width, height)', roi,
+               Bound.GEOMETRY, 'all four 0 (the full image) or a width and height > 0')
     if bx == by == 1 and roi[2] == roi[3] == 0:
         return None
     W, H = image_side('width', width), image_side('height', height)

@@ -138,7 +138,8 @@ def check_whole(error: type, quantity: str, value, lo: float = -math.inf,
         limit = ' '.join(['a whole number', ' and '.join(e for e in ends if e)]).rstrip()
     if isinstance(value, np.ndarray) and value.ndim == 0:
         value = value[()]
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+    if isinstance(value, (bool, np.bool_, np.timedelta64)) or \
+            not isinstance(value, numbers.Real):  # a duration is no count either
         refuse(error, quantity, value, Bound.SHAPE, f'{limit}, not a {type(value).__name__}')
     # a ratio is finite (math.isfinite would convert 10**400 / 1 to a float: OverflowError);
     # numpy's own test for its floats (a long double of 1e4000 is finite, no float's inf)

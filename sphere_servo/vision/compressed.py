@@ -66,6 +66,12 @@ class Format:
     colour: str
 
 
+def _shown(fmt) -> str:
+    """Return ``repr(fmt)`` for a message, at most 80 characters (a format can be any size)."""
+    text = repr(fmt)
+    return text if len(text) <= 80 else f'{text[:60]}… ({len(text)} characters)'
+
+
 def parse_format(fmt: str) -> Format:
     """
     Read a CompressedImage ``format`` as compressed_image_transport's subscriber does.
@@ -89,31 +95,32 @@ def parse_format(fmt: str) -> Format:
     Here the format's case and spacing are not significant (upstream compares verbatim).
     Raises ``ValueError`` for a format that is not an 8-bit image this module decodes.
     """
+    shown = _shown(fmt)
     text = ' '.join(str(fmt).split()).lower()
     head, sep, tail = text.partition(';')
     words = (tail if sep else head).split()
     if not words:
-        raise ValueError(f'CompressedImage format {fmt!r} names no codec: expected e.g. '
+        raise ValueError(f'CompressedImage format {shown} names no codec: expected e.g. '
                          "'bgr8; jpeg compressed bgr8' or 'png'")
     codec = words[0]
     if codec not in CODECS:
-        raise ValueError(f'CompressedImage format {fmt!r}: codec {codec!r} is not an 8-bit '
+        raise ValueError(f'CompressedImage format {shown}: codec {_shown(codec)} is not an 8-bit '
                          f'image codec this detector decodes ({", ".join(CODECS)}; '
                          'compressedDepth is depth)')
     original = head.strip() if sep else ''
     if sep and original not in ORIGINALS:
-        raise ValueError(f'CompressedImage format {fmt!r}: the original encoding '
-                         f'{original!r} is not 8-bit colour or grey that the detector reads '
+        raise ValueError(f'CompressedImage format {shown}: the original encoding '
+                         f'{_shown(original)} is not 8-bit colour or grey that the detector reads '
                          f'({", ".join(ORIGINALS)})')
     if not (len(words) == 1 or words[1] == 'compressed' and len(words) <= 3):
         # e.g. 'rgb8; png compressed rgb8 compressed bgr8': upstream finds 'compressed bgr'
         # and reads bgr, yet the codec was said to be given rgb8. What the codec was given is
         # no longer one thing: the colour order would be a guess
-        raise ValueError(f'CompressedImage format {fmt!r}: after the codec, expected nothing, '
+        raise ValueError(f'CompressedImage format {shown}: after the codec, expected nothing, '
                          "'compressed' or 'compressed <encoding>'")
     enc = words[2] if len(words) == 3 else ''
     if enc not in ('', 'bgr8', 'rgb8', 'mono8', 'bgra8', 'rgba8'):
-        raise ValueError(f'CompressedImage format {fmt!r}: compressed encoding {enc!r} is '
+        raise ValueError(f'CompressedImage format {shown}: compressed encoding {_shown(enc)} is '
                          'not 8-bit colour or grey')
     rgb = original in COLOUR and 'compressed bgr' not in tail
     return Format(codec, original, enc, 'rgb8' if rgb else 'bgr8')
@@ -174,7 +181,7 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
     largest image decoded (the camera's); without it, :data:`MAX_PIXELS`. Raises
     ``ValueError`` (module docstring: what is refused).
     """
-    form = parse_format(fmt)
+    form, shown = parse_format(fmt), _shown(fmt)
     buf = compressed_bytes(data)
     if buf.size == 0:
         raise ValueError('CompressedImage has no data')
@@ -182,7 +189,7 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
     codec, (w, h) = declared_size(buf)
     if codec not in CONTENTS:
         raise ValueError(f'CompressedImage data are a {codec} image, not JPEG, PNG or WebP '
-                         f'(format {fmt!r})')
+                         f'(format {shown})')
     if max_size is None:
         if w * h > MAX_PIXELS:
             raise ValueError(f'CompressedImage declares a {w}x{h} image: more than '
@@ -195,10 +202,10 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
     try:
         img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:   # OpenCV's own checks (its pixel limit): an assertion, no None
-        raise ValueError(f'CompressedImage data ({buf.size} bytes, format {fmt!r}): OpenCV '
+        raise ValueError(f'CompressedImage data ({buf.size} bytes, format {shown}): OpenCV '
                          f'refuses to decode them: {exc}') from None
     if img is None:
-        raise ValueError(f'CompressedImage data ({buf.size} bytes, format {fmt!r}) is not an '
+        raise ValueError(f'CompressedImage data ({buf.size} bytes, format {shown}) is not an '
                          'image OpenCV can decode (corrupt or truncated?)')
     if img.shape[:2] != (h, w):   # Pillow and OpenCV read other images in these bytes
         raise ValueError(f'CompressedImage data decode to {img.shape[1]}x{img.shape[0]} '
@@ -210,7 +217,7 @@ def decode_compressed(fmt: str, data, max_size: tuple[int, int] | None = None
         return np.ascontiguousarray(img.reshape(img.shape[:2])), 'mono8'
     if 'mono8' in (form.original, form.compressed):   # upstream labels it mono8 (an rgb8
         # original compressed as mono8: reads it as rgb) all the same: no order to trust
-        raise ValueError(f'CompressedImage format {fmt!r} says mono8, but its data decode '
+        raise ValueError(f'CompressedImage format {shown} says mono8, but its data decode '
                          f'to {img.shape[2]} channels')
     if img.shape[2] == 4:
         return without_alpha(img, 'rgba8' if form.colour == 'rgb8' else 'bgra8')
