@@ -19,6 +19,7 @@ import fcntl
 import itertools
 import os
 from pathlib import Path
+import re
 import subprocess
 import sys
 import tempfile
@@ -42,10 +43,16 @@ ROS_FIXTURES = {'install_space', 'ros_env', 'launch', 'test_node'}
 
 def pytest_collection_modifyitems(config, items):
     """
-    Mark every test that needs the colcon install or DDS as ``ros``.
+    Mark every test that needs the colcon install or DDS as ``ros``; refuse unstable ids.
 
-    ``pytest -m "not ros"`` then leaves them out: a fast inner loop.
+    ``pytest -m "not ros"`` then leaves them out: a fast inner loop. An id holding an
+    object's address (``<object object at 0x…>``) differs between pytest-xdist's workers,
+    which then stop the run at collection: it is refused here, in any run, by name.
     """
+    unstable = [item.nodeid for item in items if re.search(r' at 0x[0-9a-f]+', item.nodeid)]
+    if unstable:
+        raise pytest.UsageError('test ids with an address (give the parametrization ids): '
+                                + ', '.join(unstable[:5]))
     for item in items:
         if ROS_FIXTURES & set(getattr(item, 'fixturenames', ())):
             item.add_marker(pytest.mark.ros)
