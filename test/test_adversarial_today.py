@@ -121,6 +121,24 @@ def test_on_camera_info_refuses_without_raising(kw):
     assert isinstance(_info(core, **kw), Refusal) and core.camera is None and core.refused
 
 
+def test_a_camera_info_whose_reading_fails_leaves_no_camera(monkeypatch, scene):
+    # an error no one foresaw: the node's guard catches it; the images must then not be
+    # measured with the camera of the camera_info before
+    import sphere_servo.pipeline.detector as pd
+    core = _core()
+    assert not isinstance(_info(core), Refusal)
+    frame = scene[0]
+
+    def broken(*args, **kw):
+        raise RuntimeError('unforeseen')
+    monkeypatch.setattr(pd, 'camera_from_info', broken)
+    with pytest.raises(RuntimeError):
+        _info(core, width=1280, height=720)
+    assert core.camera is None and core.refused
+    out = core.on_image(480, 640, 1920, 'rgb8', frame.tobytes())
+    assert out.status is DetectStatus.REJECTED and out.measurement == Measurement()
+
+
 @pytest.mark.parametrize('bad, good', [
     ({'binning_x': False}, {'binning_x': 0}), ({'binning_y': np.False_}, {'binning_y': 0}),
     ({'binning_x': True}, {'binning_x': 1}), ({'binning_x': np.True_}, {'binning_x': 1}),

@@ -214,8 +214,11 @@ class DetectorCore:
         """
         Take the camera of a camera_info; a refused one leaves no camera, and says why.
 
-        ``binning_x``, ``binning_y``, ``roi``: as :func:`camera_from_info`.
+        ``binning_x``, ``binning_y``, ``roi``: as :func:`camera_from_info`. Should reading it
+        fail in a way not foreseen (an exception), no camera is left either: the images wait
+        for the next camera_info rather than being measured with the previous one.
         """
+        self.camera, self.refused = None, 'the latest camera_info could not be read'
         cam = camera_from_info(width, height, k, d, self.params.intrinsics_error,
                                distortion_model, binning_x=binning_x, binning_y=binning_y,
                                roi=roi)
