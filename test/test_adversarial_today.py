@@ -308,3 +308,18 @@ def test_a_huge_format_is_refused_in_a_short_message(fmt):
     with pytest.raises(ValueError) as info:
         decode_compressed(fmt, b'\xff\xd8')
     assert len(str(info.value)) < 400
+
+
+@pytest.mark.parametrize('fmt, colour', [
+    ('rgb8; jpeg compressed bgr8', 'bgr8'), ('rgb8; jpeg', 'rgb8'), ('PNG', 'bgr8'),
+    ('RGB8 ;  JPEG   compressed   BGR8', 'bgr8'),  # no colour image upstream: read as meant
+    ('rgb8; jpeg compressed  bgr8', None), ('rgb8; JPEG compressed BGR8', None),
+    ('bgr8; jpeg Compressed bgr8', None), ('rgba8; png compressed\tbgra8', None)])
+def test_a_format_image_transport_reads_in_the_other_order_is_refused(fmt, colour):
+    # image_transport finds 'compressed bgr' verbatim; where spacing or case hide it from
+    # it, the two readings differ: neither can be trusted
+    if colour is None:
+        with pytest.raises(ValueError, match='image_transport'):
+            parse_format(fmt)
+    else:
+        assert parse_format(fmt).colour == colour

@@ -92,7 +92,8 @@ def parse_format(fmt: str) -> Format:
       jpeg compressed`` (what older plugins wrote: they gave the codec rgb8) to rgb8;
     - ``;`` and another original (mono8): labelled so, the channels as decoded.
 
-    Here the format's case and spacing are not significant (upstream compares verbatim).
+    Here the format's case and spacing are not significant (upstream compares verbatim),
+    except where that changes the colour order upstream reads: then it is refused.
     Raises ``ValueError`` for a format that is not an 8-bit image this module decodes.
     """
     shown = _shown(fmt)
@@ -122,8 +123,29 @@ def parse_format(fmt: str) -> Format:
     if enc not in ('', 'bgr8', 'rgb8', 'mono8', 'bgra8', 'rgba8'):
         raise ValueError(f'CompressedImage format {shown}: compressed encoding {_shown(enc)} is '
                          'not 8-bit colour or grey')
-    rgb = original in COLOUR and 'compressed bgr' not in tail
-    return Format(codec, original, enc, 'rgb8' if rgb else 'bgr8')
+    colour = 'rgb8' if original in COLOUR and 'compressed bgr' not in tail else 'bgr8'
+    theirs = _upstream_colour(str(fmt))
+    if theirs is not None and theirs != colour:
+        # e.g. 'rgb8; jpeg compressed  bgr8': read verbatim upstream finds no 'compressed bgr'
+        raise ValueError(f'CompressedImage format {shown}: read here as {colour}, but as '
+                         f'{theirs} by image_transport, which compares the format verbatim '
+                         '(case and spaces): the colour order is not one thing')
+    return Format(codec, original, enc, colour)
+
+
+def _upstream_colour(fmt: str) -> str | None:
+    """
+    Return the channel order compressed_image_transport gives a colour image of ``fmt``.
+
+    Verbatim, as its subscriber compares (:func:`parse_format`); None when it makes no colour
+    image of it (an original that is not exactly a colour encoding's name).
+    """
+    original, sep, tail = fmt.partition(';')
+    if not sep:
+        return 'bgr8'
+    if original not in COLOUR:
+        return None
+    return 'bgr8' if 'compressed bgr' in tail else 'rgb8'
 
 
 def compressed_bytes(data) -> np.ndarray:
