@@ -23,8 +23,10 @@ to Python).
   communication; Fast DDS delivers between endpoints of one participant without a transport);
   prints ``{"sent": n, "rate": hz, "received": m, "latency_ms": [...]}``.
 
-Every process spins on the nodes' executor (:func:`sphere_servo.ros.executors.make_executor`),
-so the hop is the floor the pipeline is compared with.
+Every process spins on the nodes' executor (:func:`sphere_servo.ros.executors.make_executor`)
+and allocates as the nodes do (:func:`sphere_servo.pipeline.allocator.keep_heap`, as
+:func:`sphere_servo.ros.params.run` calls it), so the hop is the floor the pipeline is
+compared with.
 QoS: reliable or best effort (``--qos``), keep last ``--depth``, volatile. :func:`hop_env` is
 the environment to start these processes with.
 """
@@ -95,10 +97,12 @@ def main(argv=None) -> int:
     import rclpy
     import numpy as np
     from sensor_msgs.msg import Image
+    from sphere_servo.pipeline.allocator import keep_heap
     from sphere_servo.ros.conversions import image_from_array
     from sphere_servo.ros.executors import make_executor
     from std_msgs.msg import Header
 
+    keep_heap()  # as the nodes' run() does: without it a subscriber faults each image in anew
     rclpy.init()
     stop = {'now': False}
 

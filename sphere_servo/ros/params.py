@@ -27,6 +27,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
+from sphere_servo.pipeline.allocator import keep_heap
 from sphere_servo.pipeline.config import ConfigError, read_yaml
 from sphere_servo.pipeline.middleware import environment_problem
 from sphere_servo.pipeline.params import (check_names, NodeParams, Param, ParameterError,
@@ -179,11 +180,13 @@ def run(node_factory, name: str, args=None) -> None:
     executor; with arm_sim among others, its own on a thread) and shut down in the list's
     order. rclpy's own signal handler is disabled so the context is still valid in
     ``on_shutdown()``. The start-up's objects are frozen before the first spin
-    (:func:`freeze_startup`). An environment no node can work with
+    (:func:`freeze_startup`); image-sized blocks stay in the C heap between messages
+    (:func:`~sphere_servo.pipeline.allocator.keep_heap`). An environment no node can work with
     (:func:`~sphere_servo.pipeline.middleware.environment_problem`), a bad params file, a
     refused or an undeclared parameter end the process with a one-line message and exit
     code 2.
     """
+    keep_heap()
     try:
         problem = environment_problem(os.environ)
         if problem is not None:
