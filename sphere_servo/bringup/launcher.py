@@ -309,7 +309,7 @@ def main(argv=None) -> int:
                     "the scenario's timeout)")
     ap.add_argument('--record', metavar='DIR', help='record a rosbag2 into DIR')
     ap.add_argument('--single-process', action='store_true',
-                    help='run the nodes in one process (lowest latency)')
+                    help='run the nodes in one process (no message leaves it; latency: README)')
     ap.add_argument('--nice', type=int, default=0, metavar='N',
                     help="add N to the nodes' niceness (negative: a higher priority, as root "
                     'or with CAP_SYS_NICE)')
